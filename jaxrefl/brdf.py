@@ -1,0 +1,161 @@
+"""Reflectance models as per-row `jnp` functions.
+
+Conventions (see DESIGN.md):
+
+- A *row* is one (point, light) sample. Every function here takes one row
+  (`pd` of shape `(3,)`, everything else scalar) and is lifted to batches with
+  `jax.vmap`; plain broadcasting also works for the scalar arguments.
+- `pd` is an albedo in [0, 1]: the diffuse BRDF is `pd / pi` in both models
+  (the paper's Eq. 1 folds this `pi` into the light strength `Y`).
+- Roughness enters as its natural logarithm (`log_sigma`, `log_alpha`), the
+  parameterisation the solvers optimise.
+- `theta_r` is the angle between the normal and the half vector, computed with
+  `atan2(|N x H|, N . H)` (see `half_angle`), never `arccos`.
+- A sample is *valid* when `cos_i > 0` and `cos_o > 0` (light and viewer above
+  the surface). Invalid samples evaluate to 0 with zero gradients, never NaN.
+
+BRDF values are in 1/sr. The radiance a camera sees from a point light of
+radiant intensity `Y` [W/sr] at distance `C` [m] is
+`brdf * Y * cos_i / C**2` (`point_light_radiance`).
+
+Torrance-Sparrow (paper Eq. 1, Gaussian facet distribution, no Fresnel or
+masking term), as a BRDF:
+
+    f = pd / pi + ps * exp(-theta_r**2 / (2 sigma**2)) / (cos_i * cos_o)
+
+so the observed value is `Y / C**2 * (pd / pi * cos_i + ps * exp(...) / cos_o)`,
+which is Eq. 1 with `pd / pi` in place of `P_d`.
+
+Ward isotropic (paper Eq. 13, Ward 1992):
+
+    f = pd / pi + ps * exp(-tan(theta_h)**2 / alpha**2)
+                  / (4 pi alpha**2 sqrt(cos_i * cos_o))
+
+with `theta_h == theta_r`.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+__all__ = [
+    "COS_FLOOR",
+    "MODELS",
+    "half_angle",
+    "shading_geometry",
+    "torrance_sparrow",
+    "torrance_sparrow_specular",
+    "ward",
+    "ward_specular",
+    "point_light_radiance",
+]
+
+#: Smallest cosine used in a denominator. Valid samples closer to grazing than
+#: this (about 0.00006 degrees) are evaluated as if at this cosine, so values
+#: stay finite in float32.
+COS_FLOOR = 1e-6
+
+#: Largest exponent magnitude fed to `exp`; beyond it the lobe is 0 to float64
+#: precision and its gradient must stay 0 (not 0 * inf).
+_EXP_CAP = 700.0
+
+
+def _safe_norm(x):
+    """Euclidean norm of the last axis with a zero (not NaN) gradient at 0."""
+    sq = jnp.sum(x * x, axis=-1)
+    ok = sq > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def half_angle(n, l, v):
+    """Angle theta_r between the normal and the half vector of `l` and `v`.
+
+    **Arguments:** `n`, `l`, `v`: `(..., 3)` unit normal, direction to the light,
+    direction to the viewer.
+
+    **Returns:** `(...)` radians in [0, pi]. Uses `atan2(|n x h|, n . h)` with
+    the unnormalised half vector `h = l + v` (atan2 is scale-invariant), so it
+    keeps full precision at the specular peak where `arccos(n . h)` loses it.
+    """
+    h = l + v
+    return jnp.arctan2(_safe_norm(jnp.cross(n, h)), jnp.sum(n * h, axis=-1))
+
+
+def shading_geometry(n, l, v):
+    """Cosines and half angle of one or many samples.
+
+    **Arguments:** `n`, `l`, `v`: `(..., 3)` unit vectors (normal, to light, to viewer).
+
+    **Returns:** `(cos_i, cos_o, theta_r)`, each `(...)`.
+    """
+    return jnp.sum(n * l, axis=-1), jnp.sum(n * v, axis=-1), half_angle(n, l, v)
+
+
+def _valid_cosines(cos_i, cos_o):
+    ok = (cos_i > 0) & (cos_o > 0)
+    ci = jnp.where(ok, jnp.maximum(cos_i, COS_FLOOR), 1.0)
+    co = jnp.where(ok, jnp.maximum(cos_o, COS_FLOOR), 1.0)
+    return ok, ci, co
+
+
+def torrance_sparrow_specular(ps, log_sigma, cos_i, cos_o, theta_r):
+    """Specular lobe of the Torrance-Sparrow BRDF, 1/sr (scalar per row)."""
+    ok, ci, co = _valid_cosines(cos_i, cos_o)
+    sigma = jnp.exp(log_sigma)
+    expo = jnp.minimum(theta_r**2 / (2.0 * sigma**2), _EXP_CAP)
+    return jnp.where(ok, ps * jnp.exp(-expo) / (ci * co), 0.0)
+
+
+def ward_specular(ps, log_alpha, cos_i, cos_o, theta_r):
+    """Specular lobe of the isotropic Ward BRDF, 1/sr (scalar per row)."""
+    ok, ci, co = _valid_cosines(cos_i, cos_o)
+    alpha2 = jnp.exp(2.0 * log_alpha)
+    # tan^2 from sin/cos of theta_r with a floored cosine: finite up to grazing.
+    c = jnp.maximum(jnp.cos(theta_r), COS_FLOOR)
+    tan2 = (jnp.sin(theta_r) / c) ** 2
+    expo = jnp.minimum(tan2 / alpha2, _EXP_CAP)
+    lobe = ps * jnp.exp(-expo) / (4.0 * jnp.pi * alpha2 * jnp.sqrt(ci * co))
+    return jnp.where(ok, lobe, 0.0)
+
+
+def _diffuse(pd, cos_i, cos_o):
+    ok = (cos_i > 0) & (cos_o > 0)
+    return jnp.where(ok[..., None], pd / jnp.pi, 0.0)
+
+
+def torrance_sparrow(pd, ps, log_sigma, cos_i, cos_o, theta_r):
+    """Torrance-Sparrow BRDF of one row.
+
+    **Arguments:** `pd` `(3,)` diffuse albedo; `ps` specular reflectance;
+    `log_sigma` log of the facet slope deviation sigma [rad]; `cos_i`, `cos_o`
+    cosines of the light and view directions with the normal; `theta_r` [rad].
+
+    **Returns:** `(3,)` BRDF [1/sr]; 0 for an invalid sample.
+    """
+    spec = torrance_sparrow_specular(ps, log_sigma, cos_i, cos_o, theta_r)
+    return _diffuse(pd, cos_i, cos_o) + spec[..., None]
+
+
+def ward(pd, ps, log_alpha, cos_i, cos_o, theta_r):
+    """Isotropic Ward BRDF of one row; arguments as `torrance_sparrow`, with `log_alpha`."""
+    spec = ward_specular(ps, log_alpha, cos_i, cos_o, theta_r)
+    return _diffuse(pd, cos_i, cos_o) + spec[..., None]
+
+
+#: Model name -> (full BRDF, specular lobe). Names as used on the command line.
+MODELS = {
+    "torrance-sparrow": (torrance_sparrow, torrance_sparrow_specular),
+    "ward": (ward, ward_specular),
+}
+
+
+def point_light_radiance(brdf_value, intensity, cos_i, distance):
+    """Radiance seen from a point lit by an isotropic point light.
+
+    **Arguments:** `brdf_value` `(..., 3)` [1/sr]; `intensity` radiant intensity
+    Y [W/sr]; `cos_i` cosine at the surface; `distance` C [m] to the light.
+
+    **Returns:** `(..., 3)` radiance `brdf * Y * max(cos_i, 0) / C**2` [W/(sr m^2)].
+    """
+    irradiance = intensity * jnp.maximum(cos_i, 0.0) / distance**2
+    return brdf_value * irradiance[..., None]

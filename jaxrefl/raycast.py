@@ -1,0 +1,217 @@
+"""Batched ray queries over a triangle mesh with Embree (embreex).
+
+Everything here is host-side NumPy: rays go to Embree in float32 chunks, on a
+small thread pool (embreex releases the GIL while tracing), and come back as
+fixed-shape arrays plus masks, ready to be fed into jitted code.
+
+Self-intersection: a ray leaving a surface point starts `offset` metres off the
+surface along the normal, on the side the ray leaves to, where
+`offset = offset_factor * scale` and `scale` is the mesh's bounding-box
+diagonal; segment queries (point to light, point to camera) stop `offset`
+short of their target.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import numpy as np
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+__all__ = ["Hits", "RayCaster"]
+
+_CHUNK = 65_536
+_NO_HIT = -1
+
+
+class Hits(NamedTuple):
+    """First hits of `n` rays. `hit` `(n,)` bool; `face` `(n,)` int64 (-1 where
+    no hit); `t` `(n,)` distance [m] (inf where no hit); `barycentric`
+    `(n, 3)` weights of the face's three vertices; `points` `(n, 3)`."""
+
+    hit: np.ndarray
+    face: np.ndarray
+    t: np.ndarray
+    barycentric: np.ndarray
+    points: np.ndarray
+
+
+def _default_threads() -> int:
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+class RayCaster:
+    """Embree scene over one triangle mesh.
+
+    **Arguments:** `vertices` `(N, 3)` float [m]; `faces` `(F, 3)` int;
+    `offset_factor` origin offset as a fraction of the bounding-box diagonal;
+    `threads` size of the tracing thread pool (default: cores, at most 4).
+    """
+
+    def __init__(self, vertices, faces, offset_factor: float = 1e-5, threads: int | None = None):
+        self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        self.faces = np.ascontiguousarray(faces, dtype=np.int64)
+        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3 or len(self.vertices) == 0:
+            raise ValueError(f"RayCaster: vertices must be (N, 3), got {self.vertices.shape}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
+            raise ValueError(f"RayCaster: faces must be (F, 3), got {self.faces.shape}")
+        lo, hi = self.vertices.min(0), self.vertices.max(0)
+        self.scale = float(np.linalg.norm(hi - lo)) or 1.0
+        self.offset = offset_factor * self.scale
+        self.threads = threads or _default_threads()
+        self._scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(
+            self._scene,
+            self.vertices.astype(np.float32),
+            self.faces.astype(np.int32),
+        )
+        # Commit the BVH now rather than racing to build it on the first threaded query.
+        self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), dists=0.0)
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        """`(F, 3)` unit geometric normals (right-hand rule on the face's vertex order)."""
+        tri = self.vertices[self.faces]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return n / np.where(length > 0, length, 1.0)
+
+    # -- raw Embree ------------------------------------------------------------
+
+    def _map(self, fn, n):
+        starts = range(0, n, _CHUNK)
+        if self._pool is None or n <= _CHUNK:
+            return [fn(s, min(s + _CHUNK, n)) for s in starts]
+        return list(self._pool.map(lambda s: fn(s, min(s + _CHUNK, n)), starts))
+
+    @staticmethod
+    def _prepare(origins, directions, tfar):
+        o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
+        d = np.ascontiguousarray(directions, dtype=np.float32).reshape(-1, 3)
+        if o.shape != d.shape:
+            raise ValueError(f"origins {o.shape} and directions {d.shape} differ")
+        if tfar is None:
+            tf = np.full(len(o), np.inf, dtype=np.float32)
+        else:
+            tf = np.ascontiguousarray(np.broadcast_to(tfar, (len(o),)), dtype=np.float32)
+        return o, d, tf
+
+    def occluded(self, origins, directions, tfar=None) -> np.ndarray:
+        """`(n,)` bool: does a ray hit anything with `0 <= t < tfar`?
+
+        **Arguments:** `origins`, `directions` `(n, 3)` (directions need not be
+        unit; `t` is in units of their length); `tfar` scalar or `(n,)`, default inf.
+        """
+        o, d, tf = self._prepare(origins, directions, tfar)
+        out = np.empty(len(o), dtype=bool)
+
+        def run(a, b):
+            out[a:b] = self._scene.run(o[a:b], d[a:b], dists=tf[a:b].copy(), query="OCCLUDED") != _NO_HIT
+
+        self._map(run, len(o))
+        return out
+
+    def first_hit(self, origins, directions, tfar=None) -> Hits:
+        """Closest hit of each ray (directions need not be unit; `t` is in their units)."""
+        o, d, tf = self._prepare(origins, directions, tfar)
+        n = len(o)
+        face = np.empty(n, dtype=np.int64)
+        t = np.empty(n, dtype=np.float64)
+        uv = np.empty((n, 2), dtype=np.float64)
+
+        def run(a, b):
+            r = self._scene.run(o[a:b], d[a:b], dists=tf[a:b].copy(), output=1)
+            face[a:b] = r["primID"]
+            t[a:b] = r["tfar"]
+            uv[a:b, 0], uv[a:b, 1] = r["u"], r["v"]
+
+        self._map(run, n)
+        hit = (face != _NO_HIT) & (face >= 0)
+        face = np.where(hit, face, -1)
+        t = np.where(hit, t, np.inf)
+        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+        bary = np.where(hit[:, None], bary, 0.0)
+        # Recompute hit points in float64 from the barycentrics, not origin + t * dir.
+        points = np.einsum("nk,nkj->nj", bary, self.vertices[self.faces[np.maximum(face, 0)]])
+        points = np.where(hit[:, None], points, np.nan)
+        return Hits(hit, face, t, bary, points)
+
+    # -- surface-aware queries -------------------------------------------------
+
+    def offset_origins(self, points, normals, directions) -> np.ndarray:
+        """`(n, 3)` origins moved `offset` off the surface toward the side each ray leaves to."""
+        points = np.asarray(points, dtype=np.float64)
+        normals = np.asarray(normals, dtype=np.float64)
+        side = np.sign(np.sum(normals * directions, axis=-1, keepdims=True))
+        side = np.where(side == 0, 1.0, side)
+        return points + self.offset * side * normals
+
+    def segments_blocked(self, points, normals, targets) -> np.ndarray:
+        """Is the segment from each surface point to its target blocked?
+
+        **Arguments:** `points` `(n, 3)`, `normals` `(n, 3)`, `targets` `(n, 3)` [m].
+
+        **Returns:** `(n,)` bool.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        d = np.asarray(targets, dtype=np.float64) - points
+        length = np.linalg.norm(d, axis=-1)
+        unit = d / np.where(length > 0, length, 1.0)[:, None]
+        origins = self.offset_origins(points, normals, unit)
+        tfar = np.maximum(length - 2.0 * self.offset, 0.0)
+        return self.occluded(origins, unit, tfar)
+
+    def visibility(self, points, normals, positions) -> np.ndarray:
+        """Unoccluded line of sight between every point and each of its positions.
+
+        **Arguments:** `points` `(N, 3)`; `normals` `(N, 3)`; `positions`
+        `(3,)`, `(M, 3)`, `(N, 1, 3)` or `(N, M, 3)` (lights or camera centres).
+
+        **Returns:** `(N, M)` bool, True where nothing blocks the segment. The
+        facing test (cosines > 0) is separate: see `rig.observation_geometry`.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        n = len(points)
+        pos = np.asarray(positions, dtype=np.float64)
+        if pos.ndim == 1:
+            pos = pos[None, None, :]
+        elif pos.ndim == 2:
+            pos = pos[None, :, :]
+        m = pos.shape[1]
+        pos = np.broadcast_to(pos, (n, m, 3))
+        p = np.broadcast_to(points[:, None, :], (n, m, 3)).reshape(-1, 3)
+        nr = np.broadcast_to(np.asarray(normals, dtype=np.float64)[:, None, :], (n, m, 3))
+        blocked = self.segments_blocked(p, nr.reshape(-1, 3), pos.reshape(-1, 3))
+        return ~blocked.reshape(n, m)
+
+    def all_hits(self, origins, directions, max_hits: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Up to `max_hits` intersections along each ray, nearest first.
+
+        **Returns:** `t` `(n, max_hits)` (inf where none), `face` `(n, max_hits)`
+        (-1 where none), `mask` `(n, max_hits)` bool.
+        """
+        o = np.asarray(origins, dtype=np.float64).copy()
+        d = np.asarray(directions, dtype=np.float64)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        n = len(o)
+        t_all = np.full((n, max_hits), np.inf)
+        f_all = np.full((n, max_hits), -1, dtype=np.int64)
+        travelled = np.zeros(n)
+        live = np.arange(n)
+        for k in range(max_hits):
+            if len(live) == 0:
+                break
+            h = self.first_hit(o[live], d[live])
+            live = live[h.hit]
+            travelled[live] += h.t[h.hit]
+            t_all[live, k] = travelled[live]
+            f_all[live, k] = h.face[h.hit]
+            # Restart just past the hit (along the ray, so no normal is needed).
+            step = self.offset
+            o[live] = o[live] + d[live] * (h.t[h.hit] + step)[:, None]
+            travelled[live] += step
+        return t_all, f_all, f_all >= 0
