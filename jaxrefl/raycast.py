@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -71,6 +72,26 @@ class RayCaster:
         # Commit the BVH now rather than racing to build it on the first threaded query.
         self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), dists=0.0)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    @cached_property
+    def offset_normals(self) -> np.ndarray:
+        """`(N, 3)` unit area-weighted vertex normals of the mesh with coincident
+        vertices welded, used to step rays off vertices.
+
+        Welding matters where a mesh duplicates vertices along a crease (e.g.
+        two plates meeting at a fold): each copy's own normal points along the
+        other plate, while the welded normal points into the crease.
+        """
+        _, weld = np.unique(self.vertices, axis=0, return_inverse=True)
+        weld = weld.ravel()
+        area_normals = np.cross(*(self.vertices[self.faces[:, k]] - self.vertices[self.faces[:, 0]]
+                                  for k in (1, 2)))
+        acc = np.zeros((weld.max() + 1, 3))
+        for k in range(3):
+            np.add.at(acc, weld[self.faces[:, k]], area_normals)
+        n = acc[weld]
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return n / np.where(length > 0, length, 1.0)
 
     @property
     def face_normals(self) -> np.ndarray:
@@ -143,12 +164,15 @@ class RayCaster:
     # -- surface-aware queries -------------------------------------------------
 
     def offset_origins(self, points, normals, directions) -> np.ndarray:
-        """`(n, 3)` origins moved `offset` off the surface toward the side each ray leaves to."""
+        """`(n, 3)` origins moved `offset` off the surface along `normals`,
+        toward the side each ray leaves to, plus `offset / 10` along the ray
+        (unit `directions`), which keeps grazing rays off their own face."""
         points = np.asarray(points, dtype=np.float64)
         normals = np.asarray(normals, dtype=np.float64)
+        directions = np.asarray(directions, dtype=np.float64)
         side = np.sign(np.sum(normals * directions, axis=-1, keepdims=True))
         side = np.where(side == 0, 1.0, side)
-        return points + self.offset * side * normals
+        return points + self.offset * (side * normals + 0.1 * directions)
 
     def segments_blocked(self, points, normals, targets) -> np.ndarray:
         """Is the segment from each surface point to its target blocked?
@@ -162,31 +186,29 @@ class RayCaster:
         length = np.linalg.norm(d, axis=-1)
         unit = d / np.where(length > 0, length, 1.0)[:, None]
         origins = self.offset_origins(points, normals, unit)
-        tfar = np.maximum(length - 2.0 * self.offset, 0.0)
+        tfar = np.maximum(length - 3.0 * self.offset, 0.0)
         return self.occluded(origins, unit, tfar)
 
-    def visibility(self, points, normals, positions) -> np.ndarray:
-        """Unoccluded line of sight between every point and each of its positions.
+    def visibility(self, positions, vertices=None) -> np.ndarray:
+        """Unoccluded line of sight between mesh vertices and positions.
 
-        **Arguments:** `points` `(N, 3)`; `normals` `(N, 3)`; `positions`
-        `(3,)`, `(M, 3)`, `(N, 1, 3)` or `(N, M, 3)` (lights or camera centres).
+        **Arguments:** `positions` `(3,)`, `(M, 3)`, `(P, 1, 3)` or `(P, M, 3)`
+        (lights or camera centres) for the vertices `vertices` `(P,)` (indices;
+        default all, `P = N`). Rays start from the vertices, stepped off along
+        `offset_normals`.
 
-        **Returns:** `(N, M)` bool, True where nothing blocks the segment. The
+        **Returns:** `(P, M)` bool, True where nothing blocks the segment. The
         facing test (cosines > 0) is separate: see `rig.observation_geometry`.
         """
-        points = np.asarray(points, dtype=np.float64)
-        n = len(points)
+        idx = np.arange(len(self.vertices)) if vertices is None else np.asarray(vertices)
+        p = len(idx)
         pos = np.asarray(positions, dtype=np.float64)
-        if pos.ndim == 1:
-            pos = pos[None, None, :]
-        elif pos.ndim == 2:
-            pos = pos[None, :, :]
+        pos = pos.reshape((1,) * (3 - pos.ndim) + pos.shape)
         m = pos.shape[1]
-        pos = np.broadcast_to(pos, (n, m, 3))
-        p = np.broadcast_to(points[:, None, :], (n, m, 3)).reshape(-1, 3)
-        nr = np.broadcast_to(np.asarray(normals, dtype=np.float64)[:, None, :], (n, m, 3))
-        blocked = self.segments_blocked(p, nr.reshape(-1, 3), pos.reshape(-1, 3))
-        return ~blocked.reshape(n, m)
+        pos = np.broadcast_to(pos, (p, m, 3)).reshape(-1, 3)
+        pts = np.repeat(self.vertices[idx], m, axis=0)
+        nrm = np.repeat(self.offset_normals[idx], m, axis=0)
+        return ~self.segments_blocked(pts, nrm, pos).reshape(p, m)
 
     def all_hits(self, origins, directions, max_hits: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Up to `max_hits` intersections along each ray, nearest first.

@@ -1,0 +1,1 @@
+"""Synthetic scans with known ground truth (objects, rigs, observations) for testing jaxrefl."""

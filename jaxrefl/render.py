@@ -1,0 +1,111 @@
+"""Pictures of per-vertex quantities: cylindrical unwraps and pinhole views.
+
+A picture is made by casting one Embree ray per pixel and interpolating the
+per-vertex values of the hit face with its barycentrics, so any mesh and any
+per-vertex quantity (radiance under one light, albedo, roughness, status)
+becomes an image. The cylindrical view is the paper's texture-image layout:
+column = angle about the vertical (y) axis, row = height, rays cast
+horizontally from outside toward the axis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .raycast import Hits, RayCaster
+from .rig import PinholeCamera
+
+__all__ = [
+    "cylindrical_hits",
+    "camera_hits",
+    "shade",
+    "to_srgb8",
+    "colormap",
+    "save_png",
+]
+
+
+def cylindrical_hits(caster: RayCaster, width: int = 360, height: int | None = None,
+                     axis_xz=(0.0, 0.0)) -> tuple[Hits, tuple[int, int]]:
+    """First hits of rays cast inward toward the vertical axis through `axis_xz`.
+
+    Column `j` looks from angle `theta = 2 pi j / width` (measured from +z
+    toward +x, the scanner's head angle); row 0 is the top of the object.
+    `height` defaults to keep pixels square at the object's mean radius.
+
+    **Returns:** `(hits, (height, width))` with `hits` of `height * width` rays, row-major.
+    """
+    v = caster.vertices
+    ax = np.array([axis_xz[0], 0.0, axis_xz[1]])
+    rel = v - ax
+    r_max = float(np.max(np.hypot(rel[:, 0], rel[:, 2]))) * 1.05 + 1e-6
+    y0, y1 = float(v[:, 1].min()), float(v[:, 1].max())
+    if height is None:
+        r_mean = float(np.mean(np.hypot(rel[:, 0], rel[:, 2])))
+        height = max(2, int(round(width * (y1 - y0) / (2 * np.pi * max(r_mean, 1e-9)))))
+    theta = 2 * np.pi * (np.arange(width) + 0.5) / width
+    ys = y1 - (np.arange(height) + 0.5) / height * (y1 - y0)
+    tt, yy = np.meshgrid(theta, ys)
+    s, c = np.sin(tt.ravel()), np.cos(tt.ravel())
+    origins = np.stack([ax[0] + r_max * s, yy.ravel(), ax[2] + r_max * c], -1)
+    dirs = np.stack([-s, np.zeros_like(s), -c], -1)
+    return caster.first_hit(origins, dirs, tfar=r_max), (height, width)
+
+
+def camera_hits(caster: RayCaster, camera: PinholeCamera) -> tuple[Hits, tuple[int, int]]:
+    """First hits of the rays through every pixel of `camera` (row-major)."""
+    origins, dirs = camera.pixel_rays()
+    return caster.first_hit(origins, dirs), (camera.height, camera.width)
+
+
+def shade(hits: Hits, faces: np.ndarray, values: np.ndarray, shape, background=np.nan) -> np.ndarray:
+    """Image `(H, W, C)` (or `(H, W)` for 1-D `values`) of per-vertex `values`
+    `(N, C)` interpolated at `hits`; pixels without a hit get `background`."""
+    vals = np.asarray(values, dtype=np.float64)
+    flat = vals.reshape(len(vals), -1)
+    face = np.maximum(hits.face, 0)
+    img = np.einsum("pk,pkc->pc", hits.barycentric, flat[faces[face]])
+    img[~hits.hit] = background
+    return img.reshape(*shape, *vals.shape[1:])
+
+
+def to_srgb8(linear: np.ndarray, exposure: float | None = None, background=(0, 0, 0)) -> np.ndarray:
+    """Tone-map a linear RGB image `(H, W, 3)` to sRGB uint8.
+
+    `exposure` scales linear values before the sRGB curve (default: the 99.5th
+    percentile of finite values maps to 1). NaN pixels get `background`.
+    """
+    img = np.asarray(linear, dtype=np.float64)
+    finite = np.isfinite(img).all(axis=-1)
+    if exposure is None:
+        top = np.percentile(img[finite], 99.5) if np.any(finite) else 1.0
+        exposure = 1.0 / top if top > 0 else 1.0
+    x = np.clip(np.where(finite[..., None], img, 0.0) * exposure, 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    out = np.round(srgb * 255).astype(np.uint8)
+    out[~finite] = background
+    return out
+
+
+def colormap(values: np.ndarray, cmap: str = "viridis", vmin=None, vmax=None) -> np.ndarray:
+    """A scalar image `(H, W)` as uint8 RGB through a matplotlib colormap (NaN -> black)."""
+    import matplotlib
+
+    v = np.asarray(values, dtype=np.float64)
+    finite = np.isfinite(v)
+    lo = vmin if vmin is not None else (float(v[finite].min()) if finite.any() else 0.0)
+    hi = vmax if vmax is not None else (float(v[finite].max()) if finite.any() else 1.0)
+    norm = np.clip((v - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
+    rgb = matplotlib.colormaps[cmap](np.where(finite, norm, 0.0))[..., :3]
+    out = np.round(rgb * 255).astype(np.uint8)
+    out[~finite] = 0
+    return out
+
+
+def save_png(path, image: np.ndarray) -> None:
+    """Write a uint8 `(H, W, 3)` image to PNG atomically."""
+    from matplotlib.image import imsave
+
+    from .io import atomic_write
+
+    atomic_write(path, lambda fh: imsave(fh, image, format="png"))
