@@ -92,6 +92,7 @@ def shading_geometry(n, l, v):
 
 
 def _valid_cosines(cos_i, cos_o):
+    cos_i, cos_o = jnp.asarray(cos_i), jnp.asarray(cos_o)
     ok = (cos_i > 0) & (cos_o > 0)
     ci = jnp.where(ok, jnp.maximum(cos_i, COS_FLOOR), 1.0)
     co = jnp.where(ok, jnp.maximum(cos_o, COS_FLOOR), 1.0)
@@ -119,8 +120,8 @@ def ward_specular(ps, log_alpha, cos_i, cos_o, theta_r):
 
 
 def _diffuse(pd, cos_i, cos_o):
-    ok = (cos_i > 0) & (cos_o > 0)
-    return jnp.where(ok[..., None], pd / jnp.pi, 0.0)
+    ok = (jnp.asarray(cos_i) > 0) & (jnp.asarray(cos_o) > 0)
+    return jnp.where(ok[..., None], jnp.asarray(pd) / jnp.pi, 0.0)
 
 
 def torrance_sparrow(pd, ps, log_sigma, cos_i, cos_o, theta_r):

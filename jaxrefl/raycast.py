@@ -63,7 +63,8 @@ class RayCaster:
         self.scale = float(np.linalg.norm(hi - lo)) or 1.0
         self.offset = offset_factor * self.scale
         self.threads = threads or _default_threads()
-        self._scene = rtcore_scene.EmbreeScene()
+        # Robust mode: watertight traversal, so rays through vertices and edges are not lost.
+        self._scene = rtcore_scene.EmbreeScene(robust=True)
         TriangleMesh(
             self._scene,
             self.vertices.astype(np.float32),

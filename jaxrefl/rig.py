@@ -206,10 +206,10 @@ def _unit_and_length(d):
 
 @jax.jit
 def _geometry_rows(points, normals, cam_pos, light_pos):
-    def row(p, n, c, lp):  # one point against its M lights
-        l, dl = _unit_and_length(lp - p)
-        v, dv = _unit_and_length(c - p)
-        cos_i, cos_o, theta_r = brdf.shading_geometry(n, l, v)
+    def row(p, n, c, lp):  # one point (3,) against its M lights (M, 3)
+        l, dl = _unit_and_length(lp - p[None])
+        v, dv = _unit_and_length(c - p[None])
+        cos_i, cos_o, theta_r = brdf.shading_geometry(n[None], l, v)
         return ObservationGeometry(l, v, dl, dv, cos_i, cos_o, theta_r)
 
     return jax.vmap(row)(points, normals, cam_pos, light_pos)
@@ -230,5 +230,5 @@ def observation_geometry(points, normals, cam_pos, light_pos) -> ObservationGeom
         light_pos = jnp.broadcast_to(light_pos, (n, *light_pos.shape))
     m = light_pos.shape[1]
     cam_pos = jnp.asarray(cam_pos)
-    cam_pos = jnp.broadcast_to(cam_pos, (n, m, 3)) if cam_pos.ndim < 3 else cam_pos
+    cam_pos = jnp.broadcast_to(cam_pos.reshape((1,) * (3 - cam_pos.ndim) + cam_pos.shape), (n, m, 3))
     return _geometry_rows(points, jnp.asarray(normals), cam_pos, light_pos)
