@@ -10,7 +10,7 @@ arrays go to every implementation.
 
 How: baseline = raw embreex, one `scene.run` call in this thread (`query='OCCLUDED'`
 with `dists=tfar`; `output=1` for first hits), on a scene built with the same flags as
-`RayCaster`'s (robust mode, read off its source); a raw scene with embreex's default
+`RayCaster`'s (robust mode, `RayCaster.robust`); a raw scene with embreex's default
 flags is timed too, to show what robust mode costs. Measured: `RayCaster.occluded` /
 `first_hit` with threads=1, 2 and the default, the full `RayCaster.visibility` call
 (offsetting and array prep included), and trimesh's `RayMeshIntersector` as a second
@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import inspect
 import os
 import platform
 import statistics
@@ -38,7 +37,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from data_synth.objects import make_object
-from jaxrefl.raycast import RayCaster, _default_threads
+from jaxrefl.raycast import RayCaster, default_threads
 from jaxrefl.rig import CylindricalScanner
 
 
@@ -67,11 +66,6 @@ def _busy_cpu_seconds() -> float | None:
 def _own_cpu_seconds() -> float:
     t = os.times()
     return t.user + t.system
-
-
-def _raycaster_robust() -> bool:
-    """Does `RayCaster` build its Embree scene in robust mode? (No accessor exists.)"""
-    return "robust=True" in inspect.getsource(RayCaster.__init__)
 
 
 def _raw_scene(vertices, faces, robust: bool):
@@ -127,8 +121,8 @@ def run(n_rays: int, repeats: int, obj_name: str, resolution: int, seed: int) ->
     obj = make_object(obj_name, resolution)
     n_vert, n_face = len(obj.vertices), len(obj.faces)
 
-    default_threads = _default_threads()
-    thread_counts = sorted({1, 2, default_threads})
+    n_threads_default = default_threads()
+    thread_counts = sorted({1, 2, n_threads_default})
     casters = {t: RayCaster(obj.vertices, obj.faces, threads=t) for t in thread_counts}
     rc1 = casters[1]
 
@@ -139,7 +133,7 @@ def run(n_rays: int, repeats: int, obj_name: str, resolution: int, seed: int) ->
     h_tf32 = np.full(len(h_o32), np.inf, dtype=np.float32)
     n_s, n_h = len(s_o32), len(h_o32)
 
-    robust = _raycaster_robust()
+    robust = RayCaster.robust
     raw = _raw_scene(rc1.vertices, rc1.faces, robust)
     raw_other = _raw_scene(rc1.vertices, rc1.faces, not robust)
     mode, other_mode = ("robust", "default flags") if robust else ("default flags", "robust")
@@ -168,12 +162,12 @@ def run(n_rays: int, repeats: int, obj_name: str, resolution: int, seed: int) ->
         rows.append(("shadow", "trimesh `intersects_any` (no tfar)", 1, t, np.mean(occ == occ_raw)))
     for th, rc in casters.items():
         t, occ = _median_time(lambda rc=rc: rc.occluded(s_o32, s_d32, s_tf32), repeats)
-        label = f"{th} (default)" if th == default_threads else th
+        label = f"{th} (default)" if th == n_threads_default else th
         rows.append(("shadow", "jaxrefl `occluded`", label, t, np.mean(occ == occ_raw)))
-    for th in sorted({1, default_threads}):
+    for th in sorted({1, n_threads_default}):
         rc = casters[th]
         t, vis = _median_time(lambda rc=rc: rc.visibility(lights, idx), repeats)
-        label = f"{th} (default)" if th == default_threads else th
+        label = f"{th} (default)" if th == n_threads_default else th
         rows.append(("shadow", "jaxrefl `visibility` (full call)", label, t,
                      np.mean(vis.ravel() == ~occ_raw)))
     assert np.array_equal(s_tf32, s_tf.astype(np.float32)), "raw run modified tfar in place"
@@ -195,7 +189,7 @@ def run(n_rays: int, repeats: int, obj_name: str, resolution: int, seed: int) ->
         same = hits.face == face_raw
         both = same & hits.hit
         t_err = max(t_err, float(np.max(np.abs(hits.t[both] - r["tfar"][both]), initial=0.0)))
-        label = f"{th} (default)" if th == default_threads else th
+        label = f"{th} (default)" if th == n_threads_default else th
         rows.append(("first-hit", "jaxrefl `first_hit`", label, t, np.mean(same)))
 
     wall = time.perf_counter() - t0
@@ -236,7 +230,7 @@ def run(n_rays: int, repeats: int, obj_name: str, resolution: int, seed: int) ->
         "builds it) / time (> 1 = faster). `visibility` rebuilds "
         "its rays from (vertex, light) pairs inside the timed call. trimesh's `intersects_any` "
         "has no tfar (closest hit to infinity, on its own rescaled default-flags scene). "
-        f"Default RayCaster threads here: {default_threads}.",
+        f"Default RayCaster threads here: {n_threads_default}.",
         f"- Run: {wall:.1f} s wall; CPU used by other processes meanwhile: "
         + ("unknown" if other is None else f"{other / wall:.2f} cores on average")
         + " (threaded rows are only meaningful when this is ~0)",

@@ -1,0 +1,85 @@
+"""The command line, run as a user runs it (a subprocess)."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def jaxrefl(*args, cwd=None):
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "jaxrefl.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, env=env, timeout=600)
+
+
+def test_synth_render_info(tmp_path):
+    scan = tmp_path / "e.npz"
+    r = jaxrefl("synth", "E", "--out", scan, "--resolution", 24, "--lights", "4,5", "--gi", "--samples", 4,
+                "--noise", 0.01, "--bits", 12, "--json")
+    assert r.returncode == 0, r.stderr
+    report = json.loads(r.stdout)
+    assert report["points"] > 0 and report["lights"] == 2 and report["global_illumination"]
+    for what in ("radiance", "pd", "normals", "observations"):
+        png = tmp_path / f"{what}.png"
+        r = jaxrefl("render", scan, "--what", what, "--light", 1, "--out", png)
+        assert r.returncode == 0, r.stderr
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    r = jaxrefl("render", scan, "--view", "cylindrical", "--width", 64, "--out", tmp_path / "cyl.png")
+    assert r.returncode == 0, r.stderr
+    r = jaxrefl("info", scan, "--json")
+    info = json.loads(r.stdout)
+    assert info["lights"] == 2 and info["saturation"] is not None and "true_pd" in info["truth"]
+
+
+@pytest.mark.parametrize("corrupt, field", [
+    (lambda d: d.update(radiance=-d["radiance"] - 1), "radiance"),
+    (lambda d: d.update(faces=d["faces"] + 10_000), "faces"),
+    (lambda d: d.update(vertices=d["vertices"] * np.nan), "vertices"),
+])
+def test_bad_input_is_one_line_naming_the_field(tmp_path, corrupt, field):
+    scan = tmp_path / "s.npz"
+    assert jaxrefl("synth", "C", "--out", scan, "--resolution", 20, "--lights", "0").returncode == 0
+    data = dict(np.load(scan))
+    corrupt(data)
+    np.savez(tmp_path / "bad.npz", **data)
+    out = tmp_path / "never.png"
+    r = jaxrefl("render", tmp_path / "bad.npz", "--out", out)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and field in lines[0] and "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_missing_file_and_bad_arguments(tmp_path):
+    r = jaxrefl("info", tmp_path / "nope.npz")
+    assert r.returncode == 2 and "nope.npz" in r.stderr and "Traceback" not in r.stderr
+    r = jaxrefl("synth", "A", "--out", tmp_path / "x.npz", "--lights", "1,99")
+    assert r.returncode == 2 and "lights" in r.stderr
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_demo_writes_summary_and_pictures(tmp_path):
+    out = tmp_path / "demo"
+    r = jaxrefl("demo", "--out", out, "--resolution", 24, "--samples", 8)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    for name in summary["files"]:
+        assert (out / name).stat().st_size > 0
+    assert any(n.endswith(".png") for n in summary["files"])
+    assert summary["object_E_diffuse"]["gi_over_direct_within_2cm_of_fold"] > 1.1
+    for f in summary["furnace"]:
+        assert abs(f["z"]) < 5
+
+
+def test_console_script_is_installed():
+    exe = shutil.which("jaxrefl")
+    if exe is None:
+        pytest.skip("jaxrefl is not installed (pip install -e .): console script not on PATH")
+    r = subprocess.run([exe, "--version"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip()
