@@ -1,8 +1,9 @@
 """The `jaxrefl` command line.
 
 Subcommands: `synth` (make a synthetic scan bundle), `render` (a picture of a
-scan), `info` (validate and summarise a scan) and `demo` (the main job on the
-built-in synthetic default). Bad input ends with one line on stderr naming the
+scan), `info` (validate and summarise a scan), `select-lights` (choose capture
+lights, §2.2), `table1` (the paper's Table 1 on the synthetic objects) and
+`demo` (the main job on the built-in synthetic default). Bad input ends with one line on stderr naming the
 field, exit code 2, and no output file.
 """
 
@@ -71,6 +72,30 @@ def _add_demo(sub):
     p.add_argument("--resolution", type=int, default=48, help="mesh resolution of the demo objects")
     p.add_argument("--samples", type=int, default=64, help="paths per observation for the GI render")
     p.add_argument("--seed", type=int, default=0)
+
+
+def _add_select_lights(sub):
+    p = sub.add_parser("select-lights", help="choose capture lights among the bundle's candidates (§2.2)")
+    p.add_argument("scan", help="scan bundle (.npz); radiance optional (planning before capture)")
+    p.add_argument("--json", action="store_true", help="print the selection as one JSON object")
+    p.add_argument("--plot", default=None, help="write the coverage plot (Figure 8 analogue) to this PNG")
+    p.add_argument("--diffuse-deg", type=float, default=60.0, help="theta_th1: diffuse-only above [deg]")
+    p.add_argument("--specular-deg", type=float, default=20.0, help="theta_th2: strong specular at or below [deg]")
+    p.add_argument("--th1", type=float, default=0.8, help="share of the specular limit past which a stall stops")
+    p.add_argument("--target", type=float, default=0.99, help="stop at this share of the specular limit")
+    p.add_argument("--min-gain", type=float, default=0.0,
+                   help="a light adding fewer than this fraction of points counts as a stall")
+    p.add_argument("--paper", action="store_true", help="rank lights by raw D_p / S_p counts as the paper")
+    p.add_argument("--exact", action="store_true", help="also solve the covering problem exactly (MILP)")
+    p.add_argument("--ignore-images", action="store_true",
+                   help="plan from geometry alone even if the bundle holds radiance")
+
+
+def _add_table1(sub):
+    p = sub.add_parser("table1", help="Table 1 / Figure 8 analogue on the synthetic Objects A-D")
+    p.add_argument("--out", required=True, help="folder for table1.md, table1.json and fig8_*.png")
+    p.add_argument("--resolution", type=int, default=64)
+    p.add_argument("--no-exact", action="store_true", help="skip the exact integer-program comparison")
 
 
 def _add_info(sub):
@@ -188,6 +213,43 @@ def cmd_info(args) -> int:
     return 0
 
 
+def cmd_select_lights(args) -> int:
+    from .classify import Thresholds, classify_scan
+    from .io import load_scan
+    from .lights import exact_minimum, plot_coverage, select_lights
+
+    for name in ("th1", "target", "min_gain"):
+        if not 0 <= getattr(args, name) <= 1:
+            raise ValueError(f"{name.replace('_', '-')}: must lie in [0, 1], got {getattr(args, name)}")
+    scan = load_scan(args.scan)
+    thresholds = Thresholds(diffuse_deg=args.diffuse_deg, specular_deg=args.specular_deg)
+    m = classify_scan(scan, thresholds, use_observations=not args.ignore_images)
+    sel = select_lights(m.diffuse_only, m.strong_specular, m.seen, th1=args.th1, target=args.target,
+                        min_gain=args.min_gain, marginal=not args.paper)
+    result = sel.to_json()
+    result["thresholds_deg"] = {"diffuse": args.diffuse_deg, "specular": args.specular_deg}
+    if args.exact:
+        result["exact"] = exact_minimum(m.diffuse_only, m.strong_specular, m.seen, target=args.target)
+    if args.plot:
+        plot_coverage(sel, args.plot)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"selected {len(sel.selected)} of {scan.n_lights} lights: {sel.selected}")
+        print(f"diffuse needed {sel.diffuse_only_count}; coverage diffuse {sel.diffuse_coverage:.2%} "
+              f"(all {sel.diffuse_coverage_all:.2%}), specular {sel.specular_coverage:.2%} "
+              f"(all {sel.specular_coverage_all:.2%})")
+    return 0
+
+
+def cmd_table1(args) -> int:
+    from .reports import table1
+
+    result = table1(args.out, resolution=args.resolution, exact=not args.no_exact)
+    print(result["markdown"])
+    return 0
+
+
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -201,7 +263,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jaxrefl", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command")
-    for add in (_add_synth, _add_render, _add_info, _add_demo):
+    for add in (_add_synth, _add_render, _add_info, _add_select_lights, _add_table1, _add_demo):
         add(sub)
     args = parser.parse_args(argv)
     if args.version:
@@ -212,7 +274,8 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    commands = {"synth": cmd_synth, "render": cmd_render, "info": cmd_info, "demo": cmd_demo}
+    commands = {"synth": cmd_synth, "render": cmd_render, "info": cmd_info, "demo": cmd_demo,
+                "select-lights": cmd_select_lights, "table1": cmd_table1}
     try:
         return commands[args.command](args)
     except (ValueError, FileNotFoundError, IsADirectoryError) as exc:

@@ -83,3 +83,27 @@ def test_console_script_is_installed():
         pytest.skip("jaxrefl is not installed (pip install -e .): console script not on PATH")
     r = subprocess.run([exe, "--version"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip()
+
+
+def test_select_lights_with_and_without_radiance(tmp_path):
+    scan = tmp_path / "a.npz"
+    assert jaxrefl("synth", "A", "--out", scan, "--resolution", 24).returncode == 0
+    data = {k: v for k, v in np.load(scan).items() if k not in ("radiance", "valid")}
+    np.savez(tmp_path / "plan.npz", **data)
+    results = []
+    for path in (scan, tmp_path / "plan.npz"):
+        png = tmp_path / "fig8.png"
+        r = jaxrefl("select-lights", path, "--json", "--plot", png, "--exact")
+        assert r.returncode == 0, r.stderr
+        out = json.loads(r.stdout)
+        for key in ("selected", "diffuse_only_count", "diffuse_coverage", "specular_coverage",
+                    "specular_coverage_all", "curve"):
+            assert key in out
+        assert out["specular_coverage"] >= 0.99 * out["specular_coverage_all"]
+        assert len(set(out["selected"])) == len(out["selected"]) and 0 < len(out["selected"]) < 60
+        assert out["exact"]["count"] <= len(out["selected"])
+        assert png.read_bytes()[:4] == b"\x89PNG"
+        results.append(out["selected"])
+    assert results[0] == results[1]  # noise-free, unsaturated: images change nothing
+    r = jaxrefl("select-lights", scan, "--target", "1.5")
+    assert r.returncode == 2 and "target" in r.stderr

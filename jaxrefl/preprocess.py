@@ -1,0 +1,686 @@
+"""Range-data preprocessing (seed §2.1): outlier removal, normals by adaptive local
+quadratic surface fitting (Yokoya & Levine 1989), range image -> mesh.
+
+A Cyberware-style rangefinder rotating about the y axis measures, for every head
+angle `theta` (from +z toward +x) and height `y`, the radius `r(theta, y)` of the
+first surface point its ray meets: a `RangeImage` on a cylindrical grid, row 0 at
+the top. Everything here is host-side NumPy, vectorised over pixels (or
+vertices); the only Python loops run over the `window**2` positions of a window
+(or the `k` neighbourhoods of a vertex).
+
+Window selection. Yokoya & Levine fit a quadratic in every `w x w` window that
+contains a pixel and keep the fit with the smallest residual, so that a fit never
+straddles a depth discontinuity. Taken literally (`select="residual"`) the choice
+among windows of a smooth surface is decided by noise alone, and a window whose
+corner holds the pixel estimates the slope there with several times the variance
+of the centred window. The default, `select="variance"`, keeps the same rule but
+ranks windows by the estimated variance of the fitted slope *at the pixel*,
+`sigma_hat^2 * g^T (A^T A)^{-1} g`: a window straddling a discontinuity has a
+huge `sigma_hat^2` and loses as before, while on smooth ground the centred window
+wins. Both are measured in `benchmarks/normals_report.py`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "RangeImage",
+    "face_averaged_normals",
+    "mesh_quadratic_normals",
+    "quadratic_fit",
+    "range_image_to_mesh",
+    "remove_outliers",
+]
+
+_MAD = 1.4826  # MAD -> standard deviation for Gaussian data
+_NPARAM = 6  # 1, u, v, u^2, uv, v^2
+_COND_MIN = 1e-10  # smallest accepted eigenvalue ratio of a normal matrix
+_BIG = 1e300  # ranking key of a fit with no degrees of freedom left (exact fit)
+_SELECT = ("variance", "residual")
+
+
+# -- range images ------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: field-wise == on arrays is ambiguous
+class RangeImage:
+    """A range image on the scanner's cylindrical grid.
+
+    **Fields:** `r` `(H, W)` float64 radius from the y axis [m], NaN where the ray
+    had no return; `theta` `(W,)` head angle of each column [rad], from +z toward
+    +x, strictly increasing, spanning less than `2 pi`; `y` `(H,)` height of each
+    row [m], strictly decreasing (row 0 at the top).
+    """
+
+    r: np.ndarray
+    theta: np.ndarray
+    y: np.ndarray
+
+    def __post_init__(self) -> None:
+        r = _float_array("r", self.r)
+        theta = _float_array("theta", self.theta)
+        y = _float_array("y", self.y)
+        if r.ndim != 2 or r.shape[0] < 1 or r.shape[1] < 1:
+            raise ValueError(f"RangeImage.r: must be a 2-D (H, W) array, got shape {r.shape}")
+        h, w = r.shape
+        if theta.shape != (w,):
+            raise ValueError(f"RangeImage.theta: must have shape ({w},) to match r, got {theta.shape}")
+        if y.shape != (h,):
+            raise ValueError(f"RangeImage.y: must have shape ({h},) to match r, got {y.shape}")
+        if np.isinf(r).any():
+            raise ValueError("RangeImage.r: must be finite or NaN (no return), found inf")
+        if np.any(r[np.isfinite(r)] < 0):
+            raise ValueError(f"RangeImage.r: must be >= 0, found {np.nanmin(r)}")
+        if not np.isfinite(theta).all():
+            raise ValueError("RangeImage.theta: must be finite")
+        if w > 1 and not np.all(np.diff(theta) > 0):
+            raise ValueError("RangeImage.theta: must be strictly increasing")
+        if theta[-1] - theta[0] >= 2 * np.pi:
+            raise ValueError(f"RangeImage.theta: must span less than 2 pi, spans {theta[-1] - theta[0]}")
+        if not np.isfinite(y).all():
+            raise ValueError("RangeImage.y: must be finite")
+        if h > 1 and not np.all(np.diff(y) < 0):
+            raise ValueError("RangeImage.y: must be strictly decreasing (row 0 at the top)")
+        object.__setattr__(self, "r", r)
+        object.__setattr__(self, "theta", theta)
+        object.__setattr__(self, "y", y)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """`(H, W)`."""
+        return self.r.shape
+
+    @property
+    def dtheta(self) -> float:
+        """Median column spacing [rad] (`2 pi` for a single column)."""
+        return float(np.median(np.diff(self.theta))) if len(self.theta) > 1 else 2 * np.pi
+
+    @property
+    def dy(self) -> float:
+        """Median row spacing [m], positive (1 for a single row)."""
+        return float(np.median(-np.diff(self.y))) if len(self.y) > 1 else 1.0
+
+    @property
+    def full_circle(self) -> bool:
+        """Do the columns cover the whole turn, so that theta wraps around?
+        True when the gap from the last column back to the first is within
+        half a column spacing of the median spacing."""
+        w = len(self.theta)
+        if w < 3:
+            return False
+        gap = self.theta[0] + 2 * np.pi - self.theta[-1]
+        return bool(abs(gap - self.dtheta) < 0.5 * self.dtheta)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """`(H, W)` bool: the pixel has a return."""
+        return np.isfinite(self.r)
+
+    def points(self) -> np.ndarray:
+        """`(H, W, 3)` points `(r sin theta, y, r cos theta)` [m]; NaN where no return."""
+        s, c = np.sin(self.theta), np.cos(self.theta)
+        yy = np.broadcast_to(self.y[:, None], self.r.shape)
+        return np.stack([self.r * s, np.where(self.valid, yy, np.nan), self.r * c], axis=-1)
+
+    def with_r(self, r) -> RangeImage:
+        """The same grid with new radii `r` `(H, W)` [m] (NaN = no return)."""
+        return RangeImage(r, self.theta, self.y)
+
+
+def _float_array(name: str, x) -> np.ndarray:
+    try:
+        a = np.array(x, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"RangeImage.{name}: must be a float array ({e})") from None
+    return a
+
+
+def _check_image(img) -> RangeImage:
+    if not isinstance(img, RangeImage):
+        raise ValueError(f"img: must be a RangeImage, got {type(img).__name__}")
+    return img
+
+
+def _check_window(window) -> int:
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
+        raise ValueError(f"window: must be an odd integer >= 3, got {window!r}")
+    return int(window)
+
+
+def _check_positive(name: str, x) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a positive number, got {x!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{name}: must be a positive finite number, got {x!r}")
+    return v
+
+
+# -- grid helpers ----------------------------------------------------------------
+
+
+def _pad(a: np.ndarray, h: int, wrap: bool, fill) -> np.ndarray:
+    """Pad the first two axes by `h`: rows with `fill`, columns periodic if `wrap`."""
+    extra = [(0, 0)] * (a.ndim - 2)
+    if wrap:
+        a = np.pad(a, [(0, 0), (h, h)] + extra, mode="wrap")
+    else:
+        a = np.pad(a, [(0, 0), (h, h)] + extra, constant_values=fill)
+    return np.pad(a, [(h, h), (0, 0)] + extra, constant_values=fill)
+
+
+def _shift(padded: np.ndarray, h: int, di: int, dj: int, shape) -> np.ndarray:
+    """`out[i, j] = a[i + di, j + dj]` from `padded = _pad(a, h, ...)`."""
+    H, W = shape
+    return padded[h + di: h + di + H, h + dj: h + dj + W]
+
+
+def _extended_axes(img: RangeImage, h: int, wrap: bool):
+    """Column angles and row heights extended by `h` on each side (unwrapped when
+    periodic, extrapolated otherwise; extrapolated values are only ever masked)."""
+    W, H = len(img.theta), len(img.y)
+    j = np.arange(-h, W + h)
+    if wrap:
+        theta_ext = img.theta[j % W] + 2 * np.pi * np.floor_divide(j, W)
+    else:
+        theta_ext = np.interp(j, np.arange(W), img.theta)
+        theta_ext = np.where(j < 0, img.theta[0] + j * img.dtheta, theta_ext)
+        theta_ext = np.where(j >= W, img.theta[-1] + (j - W + 1) * img.dtheta, theta_ext)
+    i = np.arange(-h, H + h)
+    y_ext = np.interp(i, np.arange(H), img.y)
+    y_ext = np.where(i < 0, img.y[0] - i * img.dy, y_ext)
+    y_ext = np.where(i >= H, img.y[-1] - (i - H + 1) * img.dy, y_ext)
+    return theta_ext, y_ext
+
+
+def _offsets(h: int):
+    return [(di, dj) for di in range(-h, h + 1) for dj in range(-h, h + 1)]
+
+
+def _windows(a: np.ndarray, h: int, wrap: bool) -> np.ndarray:
+    """`(H, W, (2h+1)^2)` samples of each centred window, NaN outside the image."""
+    p = _pad(a, h, wrap, np.nan)
+    return np.stack([_shift(p, h, di, dj, a.shape) for di, dj in _offsets(h)], axis=-1)
+
+
+def _nanmedian_last(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over the last axis ignoring NaN, and the count of finite values
+    (median NaN where none)."""
+    s = np.sort(x, axis=-1)  # NaN sort last
+    n = np.isfinite(x).sum(-1)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(s, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan), n
+
+
+# -- outliers ----------------------------------------------------------------------
+
+
+def remove_outliers(img: RangeImage, window: int = 5, k: float = 4.0,
+                    min_scale: float = 5e-5) -> tuple[RangeImage, np.ndarray]:
+    """Remove isolated spikes from a range image.
+
+    A return is an outlier when it deviates from the median of *every* `window x
+    window` window that contains it by more than `k` robust scales (the same
+    adaptive idea as the fits: a pixel at a depth edge or a corner agrees with the
+    windows on its own side, a spike with none). The scale of a window is
+    `1.4826 x` the median absolute residual `|r - median|` of its pixels (each
+    against its own centred median, so slopes do not inflate it), floored at
+    `min_scale` [m] (about the quantisation step; it keeps noise-free or heavily
+    quantised data from being flagged). Windows with fewer than
+    `max(3, window**2 // 4)` returns are not used; a return with no usable window
+    is unsupported and removed too.
+
+    **Arguments:** `img` RangeImage; `window` odd >= 3; `k` > 0; `min_scale` [m] > 0.
+
+    **Returns:** `(cleaned, removed)`: the image with removed returns set to NaN,
+    and `(H, W)` bool, True where a return was removed.
+    """
+    img = _check_image(img)
+    window = _check_window(window)
+    k = _check_positive("k", k)
+    min_scale = _check_positive("min_scale", min_scale)
+    h, wrap, shape = window // 2, img.full_circle, img.shape
+    r = img.r
+    med, n = _nanmedian_last(_windows(r, h, wrap))
+    resid = r - med
+    scale, _ = _nanmedian_last(np.abs(_windows(resid, h, wrap)))
+    scale = np.maximum(_MAD * np.nan_to_num(scale, nan=0.0), min_scale)
+    support = n >= max(3, window * window // 4)
+    med_p = _pad(np.where(support, med, np.nan), h, wrap, np.nan)
+    scale_p = _pad(scale, h, wrap, 1.0)
+    zmin = np.full(shape, np.inf)
+    with np.errstate(invalid="ignore"):
+        for di, dj in _offsets(h):
+            # Window centred at (i - di, j - dj) contains pixel (i, j).
+            z = np.abs(r - _shift(med_p, h, -di, -dj, shape)) / _shift(scale_p, h, -di, -dj, shape)
+            zmin = np.fmin(zmin, z)
+    removed = img.valid & ~(zmin <= k)
+    return img.with_r(np.where(removed, np.nan, r)), removed
+
+
+# -- quadratic fits on the grid ------------------------------------------------------
+
+
+def _basis(s, t):
+    """`(..., 6)` quadratic basis at local coordinates `s, t`."""
+    s, t = np.broadcast_arrays(s, t)
+    return np.stack([np.ones_like(s), s, t, s * s, s * t, t * t], axis=-1)
+
+
+def _solve_batched(M: np.ndarray, ok: np.ndarray):
+    """Inverse of each well-conditioned `(..., 6, 6)` SPD matrix; `ok` is updated
+    with the conditioning test (eigenvalue ratio >= 1e-10) and the others get I."""
+    ev = np.linalg.eigvalsh(np.where(ok[..., None, None], M, np.eye(_NPARAM)))
+    ok = ok & (ev[..., 0] > _COND_MIN * ev[..., -1]) & (ev[..., -1] > 0)
+    Minv = np.linalg.inv(np.where(ok[..., None, None], M, np.eye(_NPARAM)))
+    return Minv, ok
+
+
+def _grid_fits(img: RangeImage, h: int, wrap: bool, min_samples: int):
+    """Least-squares quadratic of r over the window centred at every pixel.
+
+    Local coordinates are grid units, `s = (theta - theta_c) / dtheta` and
+    `t = (y - y_c) / dy`: an affine rescaling of the arc-length coordinates
+    `u = r0 (theta - theta_c)`, `v = y - y_c`, so the fitted surface is the same
+    and the normal matrices are well scaled.
+
+    **Returns:** `coef` `(H, W, 6)`, `Minv` `(H, W, 6, 6)`, `sigma2` `(H, W)`
+    unbiased residual variance [m^2] (inf where the fit is exact), `ok` `(H, W)`
+    bool, `S` `{dj: (W,)}`, `T` `{di: (H,)}` sample coordinates per offset.
+    """
+    shape = img.shape
+    theta_ext, y_ext = _extended_axes(img, h, wrap)
+    W, H = shape[1], shape[0]
+    S = {dj: (theta_ext[h + dj: h + dj + W] - img.theta) / img.dtheta for dj in range(-h, h + 1)}
+    T = {di: (y_ext[h + di: h + di + H] - img.y) / img.dy for di in range(-h, h + 1)}
+    rp = _pad(img.r, h, wrap, np.nan)
+    M = np.zeros(shape + (_NPARAM, _NPARAM))
+    b = np.zeros(shape + (_NPARAM,))
+    n = np.zeros(shape, dtype=np.int64)
+    for di, dj in _offsets(h):
+        rv = _shift(rp, h, di, dj, shape)
+        m = np.isfinite(rv)
+        phi = _basis(S[dj][None, :], T[di][:, None]) * m[..., None]
+        M += phi[..., :, None] * phi[..., None, :]
+        b += phi * np.where(m, rv, 0.0)[..., None]
+        n += m
+    Minv, ok = _solve_batched(M, n >= min_samples)
+    coef = np.einsum("...ij,...j->...i", Minv, b)
+    ssr = np.zeros(shape)
+    for di, dj in _offsets(h):
+        rv = _shift(rp, h, di, dj, shape)
+        m = np.isfinite(rv)
+        fit = np.einsum("...i,...i->...", _basis(S[dj][None, :], T[di][:, None]), coef)
+        ssr += np.where(m, (np.where(m, rv, 0.0) - fit) ** 2, 0.0)
+    dof = n - _NPARAM
+    sigma2 = np.where(dof > 0, ssr / np.maximum(dof, 1), np.inf)
+    return coef, Minv, sigma2, ok, S, T
+
+
+def quadratic_fit(img: RangeImage, window: int = 5, adaptive: bool = True,
+                  min_samples: int = 6, select: str = "variance"):
+    """Denoised points and normals by local quadratic fits to `r(theta, y)`.
+
+    In every `window x window` window, `r` is fitted by least squares as a
+    quadratic in the local arc-length / height coordinates (samples without a
+    return are left out; a fit needs `min_samples >= 6` returns and a
+    well-conditioned normal matrix). With `adaptive=False` a pixel uses the window
+    centred on it; with `adaptive=True` every window that contains it competes and
+    the best one is kept (`select`: `"variance"`, smallest estimated variance of
+    the fitted slope at the pixel, default; `"residual"`, smallest RMS residual,
+    Yokoya & Levine's rule as written; see the module docstring). The fitted `r`
+    at the pixel gives the point, its derivatives the normal
+    `P_theta x P_y = (r sin - r_theta cos, -r r_y, r cos + r_theta sin)`, which
+    points away from the axis on a convex surface. Theta wraps around when the
+    image covers the full circle.
+
+    **Arguments:** `img` RangeImage; `window` odd >= 3; `adaptive` bool;
+    `min_samples` >= 6; `select` `"variance"` or `"residual"`.
+
+    **Returns:** `points` `(H, W, 3)` [m], `normals` `(H, W, 3)` unit outward,
+    `valid` `(H, W)` bool, `residual` `(H, W)` RMS residual of the chosen fit
+    [m] (`sqrt(SSR / (n - 6))`, 0 for an exact fit of 6 samples). Pixels without
+    a return, or with no usable fit, have `valid` False and NaN ("no return") in
+    the other three.
+    """
+    img = _check_image(img)
+    window = _check_window(window)
+    if isinstance(min_samples, bool) or not isinstance(min_samples, (int, np.integer)) or min_samples < 6:
+        raise ValueError(f"min_samples: must be an integer >= 6, got {min_samples!r}")
+    if select not in _SELECT:
+        raise ValueError(f"select: must be one of {_SELECT}, got {select!r}")
+    h, wrap, shape = window // 2, img.full_circle, img.shape
+    coef, Minv, sigma2, ok, S, T = _grid_fits(img, h, wrap, int(min_samples))
+
+    best_key = np.full(shape, np.inf)
+    best = np.full(shape + (5,), np.nan)  # r, r_s, r_t, sigma2, unused
+    r_pix = img.r
+    arc = np.where(np.isfinite(r_pix) & (r_pix > 0), r_pix, 1.0) * img.dtheta  # metres per column
+    shifts = _offsets(h) if adaptive else [(0, 0)]
+    for a, bj in shifts:
+        # Evaluate every window centre c at the pixel c + (a, bj) ...
+        s = S[bj][None, :]
+        t = T[a][:, None]
+        phi = _basis(s, t)
+        gs = np.zeros(phi.shape)
+        gs[..., 1], gs[..., 3], gs[..., 4] = 1.0, 2 * s, t
+        gt = np.zeros(phi.shape)
+        gt[..., 2], gt[..., 4], gt[..., 5] = 1.0, s, 2 * t
+        fields = np.stack([
+            np.einsum("...i,...i->...", phi, coef),
+            np.einsum("...i,...i->...", gs, coef),
+            np.einsum("...i,...i->...", gt, coef),
+            np.einsum("...i,...ij,...j->...", gs, Minv, gs),
+            np.einsum("...i,...ij,...j->...", gt, Minv, gt),
+            np.where(ok, sigma2, np.nan),
+        ], axis=-1)
+        # ... then move the values onto the pixel grid: pixel (i, j) <- centre (i - a, j - bj).
+        f = _shift(_pad(fields, h, wrap, np.nan), h, -a, -bj, shape)
+        var_s = f[..., 3] / arc**2
+        var_t = f[..., 4] / img.dy**2
+        sig2 = f[..., 5]
+        if select == "variance":
+            key = np.where(np.isinf(sig2), _BIG, sig2 * (var_s + var_t))
+        else:
+            key = np.where(np.isinf(sig2), _BIG, sig2)
+        key = np.where(np.isfinite(sig2) | np.isinf(sig2), key, np.inf)  # NaN: no fit
+        better = key < best_key
+        best_key = np.where(better, key, best_key)
+        best = np.where(better[..., None], np.stack([f[..., 0], f[..., 1], f[..., 2], sig2, sig2], -1), best)
+
+    r_fit = best[..., 0]
+    r_th = best[..., 1] / img.dtheta
+    r_y = best[..., 2] / img.dy
+    sn, cs = np.sin(img.theta)[None, :], np.cos(img.theta)[None, :]
+    nrm = np.stack([r_fit * sn - r_th * cs, -r_fit * r_y, r_fit * cs + r_th * sn], axis=-1)
+    length = np.linalg.norm(nrm, axis=-1)
+    valid = img.valid & np.isfinite(best_key) & np.isfinite(length) & (length > 0) & (r_fit > 0)
+    normals = np.where(valid[..., None], nrm / np.where(valid, length, 1.0)[..., None], np.nan)
+    yy = np.broadcast_to(img.y[:, None], shape)
+    points = np.stack([r_fit * sn, yy, r_fit * cs], axis=-1)
+    points = np.where(valid[..., None], points, np.nan)
+    sig2 = best[..., 3]
+    residual = np.where(valid, np.sqrt(np.where(np.isinf(sig2), 0.0, np.where(valid, sig2, 0.0))), np.nan)
+    return points, normals, valid, residual
+
+
+# -- meshes ------------------------------------------------------------------------
+
+
+def range_image_to_mesh(img: RangeImage, max_jump: float | None = None):
+    """Grid triangulation of a range image.
+
+    Every quad of neighbouring pixels whose four corners have returns becomes two
+    triangles (split along its shorter diagonal), wrapping around in theta when
+    the image covers the full circle; quads with a radius step larger than
+    `max_jump` [m] between two adjacent corners are skipped (depth
+    discontinuities). Default `max_jump`: 4x the median distance between
+    neighbouring returns. Faces are wound so that right-hand normals point away
+    from the axis (outward on a convex surface). Pixels in no face are dropped.
+
+    **Returns:** `vertices` `(P, 3)` [m], `faces` `(F, 3)` int64, `pixel` `(P, 2)`
+    int64 (row, column) of each vertex.
+    """
+    img = _check_image(img)
+    H, W = img.shape
+    pts = img.points()
+    valid = img.valid
+    wrap = img.full_circle
+    r = img.r
+    if max_jump is None:
+        d = [np.linalg.norm(pts[1:] - pts[:-1], axis=-1).ravel(),
+             np.linalg.norm(pts[:, 1:] - pts[:, :-1], axis=-1).ravel()]
+        d = np.concatenate(d)
+        d = d[np.isfinite(d)]
+        max_jump = 4.0 * float(np.median(d)) if len(d) else np.inf
+        if max_jump == 0:
+            max_jump = np.inf
+    else:
+        max_jump = _check_positive("max_jump", max_jump)
+    cols = np.arange(W if wrap else W - 1)
+    j1 = (cols + 1) % W
+    rows = np.arange(H - 1)
+    ii, jj = np.meshgrid(rows, cols, indexing="ij")
+    jn = j1[None, :].repeat(len(rows), 0)
+    a, b, c, d = (ii, jj), (ii, jn), (ii + 1, jj), (ii + 1, jn)  # a b / c d; +col = +theta, +row = -y
+    with np.errstate(invalid="ignore"):
+        quad = valid[a] & valid[b] & valid[c] & valid[d]
+        for p, q in ((a, b), (c, d), (a, c), (b, d)):
+            quad &= np.abs(r[p] - r[q]) <= max_jump
+    idx = np.full((H, W), -1, dtype=np.int64)
+    flat = lambda p: p[0] * W + p[1]  # noqa: E731
+    fa, fb, fc, fd = (flat(p)[quad] for p in (a, b, c, d))
+    P = pts.reshape(-1, 3)
+    ad = np.linalg.norm(P[fa] - P[fd], axis=-1) <= np.linalg.norm(P[fb] - P[fc], axis=-1)
+    # Outward winding: (a, c, b) and (b, c, d) along diagonal b-c; (a, c, d), (a, d, b) along a-d.
+    t1 = np.where(ad[:, None], np.stack([fa, fc, fd], -1), np.stack([fa, fc, fb], -1))
+    t2 = np.where(ad[:, None], np.stack([fa, fd, fb], -1), np.stack([fb, fc, fd], -1))
+    faces_px = np.concatenate([t1, t2]) if len(t1) else np.zeros((0, 3), dtype=np.int64)
+    used = np.unique(faces_px)
+    idx.ravel()[used] = np.arange(len(used))
+    faces = idx.ravel()[faces_px]
+    pixel = np.stack([used // W, used % W], axis=-1).astype(np.int64)
+    return P[used].copy(), faces.astype(np.int64), pixel
+
+
+def _check_mesh(vertices, faces):
+    v = np.asarray(vertices, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise ValueError(f"vertices: must be (N, 3), got shape {v.shape}")
+    if not np.isfinite(v).all():
+        raise ValueError("vertices: must be finite")
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"faces: must be (F, 3), got shape {f.shape}")
+    if f.size and not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"faces: must be integers, got {f.dtype}")
+    f = f.astype(np.int64)
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"faces: indices must lie in [0, {len(v)}), found {f.min()}..{f.max()}")
+    return v, f
+
+
+def _area_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    acc = np.zeros_like(v)
+    if len(f):
+        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        for k in range(3):
+            np.add.at(acc, f[:, k], cross)
+    return acc
+
+
+def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    length = np.linalg.norm(x, axis=-1)
+    ok = np.isfinite(length) & (length > 0)
+    return np.where(ok[..., None], x / np.where(ok, length, 1.0)[..., None], 0.0), ok
+
+
+def face_averaged_normals(vertices, faces) -> np.ndarray:
+    """`(N, 3)` unit area-weighted vertex normals (right-hand rule on each face's
+    vertex order); `(0, 0, 0)` for a vertex in no non-degenerate face."""
+    v, f = _check_mesh(vertices, faces)
+    return _unit(_area_normals(v, f))[0]
+
+
+def _frames(n: np.ndarray):
+    """Two unit tangents `(N, 3)` completing each unit normal to a right-handed frame."""
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = _unit(np.cross(helper, n))[0]
+    return t1, np.cross(n, t1)
+
+
+def _mesh_fits(v, nbr, normal, weight_mask, centre_weight):
+    """Weighted quadratic height field over each vertex's neighbourhood, in the
+    frame of `normal` at the vertex. `weight_mask` `(N, k)` bool: samples used;
+    `centre_weight` scales the vertex's own sample (0 = leave it out).
+
+    **Returns:** dict with `coef` `(N, 6)` (height [m] in units of `rho`),
+    `Minv`, `sigma2` (weighted residual variance [m^2], inf when exact), `ok`,
+    `rho` `(N,)` [m], `t1`, `t2`, `n`, `resid` `(N, k)` [m], `used` `(N, k)`.
+    """
+    t1, t2 = _frames(normal)
+    d = v[nbr] - v[:, None, :]  # (N, k, 3)
+    x = np.einsum("nkj,nj->nk", d, t1)
+    y = np.einsum("nkj,nj->nk", d, t2)
+    z = np.einsum("nkj,nj->nk", d, normal)
+    dist = np.sqrt(x * x + y * y)
+    rho = np.max(np.where(weight_mask, dist, 0.0), axis=1)
+    rho = np.where(rho > 0, rho, 1.0)
+    xs, ys = x / rho[:, None], y / rho[:, None]
+    w = np.exp(-2.0 * (xs * xs + ys * ys)) * weight_mask  # Gaussian, sigma = rho / 2
+    w[:, 0] *= centre_weight
+    phi = _basis(xs, ys)  # (N, k, 6)
+    M = np.einsum("nk,nki,nkj->nij", w, phi, phi)
+    b = np.einsum("nk,nki,nk->ni", w, phi, z)
+    used = w > 0
+    n_used = used.sum(1)
+    Minv, ok = _solve_batched(M, n_used >= _NPARAM)
+    coef = np.einsum("nij,nj->ni", Minv, b)
+    resid = z - np.einsum("nki,ni->nk", phi, coef)
+    wsum = w.sum(1)
+    # Weighted variance with the weights normalised to mean 1 over the used samples.
+    wn = w * (n_used / np.where(wsum > 0, wsum, 1.0))[:, None]
+    dof = n_used - _NPARAM
+    sigma2 = np.where(dof > 0, np.sum(wn * resid**2, 1) / np.maximum(dof, 1), np.inf)
+    # Covariance of the coefficients in the same normalisation: sigma2 * (sum wn phi phi)^-1.
+    Minv = Minv * (wsum / np.where(n_used > 0, n_used, 1))[:, None, None]
+    return dict(coef=coef, Minv=Minv, sigma2=sigma2, ok=ok, rho=rho, t1=t1, t2=t2, n=normal,
+                resid=resid, used=used, x=x, y=y, z=z)
+
+
+def mesh_quadratic_normals(vertices, faces, k: int = 24, adaptive: bool = True,
+                           outlier_k: float = 4.0, iterations: int = 2):
+    """Denoised vertices and normals of a noisy mesh by local quadratic fits.
+
+    For every vertex, its `k` nearest vertices (itself included; scipy cKDTree)
+    are expressed in a local frame whose z axis is the vertex's normal (first the
+    area-weighted face normal, then, for `iterations > 1`, the previous fit's
+    normal); neighbours whose initial normal faces away (the other side of a thin
+    part) are left out. A height field `h = quadratic(x, y)` is fitted by weighted
+    least squares (Gaussian weights, sigma = half the neighbourhood radius).
+
+    Outliers: each vertex is tested against the fit of its neighbours with itself
+    left out; it is an outlier when `|residual| > outlier_k x` the neighbours'
+    robust scale (1.4826 x median |residual|, corrected for the fit's degrees of
+    freedom, floored at 1e-3 x the neighbourhood radius). The test runs twice, the
+    second time with the first round's outliers removed from every neighbourhood,
+    so that a spike does not condemn its neighbours. Outliers are excluded from
+    all fits and are moved onto a fit like any other vertex.
+
+    Adaptive (discontinuity-aware) rule: with `adaptive=True` a vertex may take
+    the fit of any of its `k` neighbours whose neighbourhood contains it, not only
+    its own; the fit with the smallest estimated variance of the slope at the
+    vertex (`sigma_hat^2 g^T Cov g`, as `quadratic_fit`'s default `select`)
+    wins, so fits straddling a crease or a gap lose to one-sided ones.
+
+    The vertex moves onto the chosen height field along that fit's frame normal;
+    the normal is the height field's normal there, oriented like the vertex's
+    area-weighted normal. A vertex with no usable fit keeps its position and its
+    area-weighted normal.
+
+    **Arguments:** `vertices` `(N, 3)` [m]; `faces` `(F, 3)` int; `k` >= 7 and
+    <= N; `adaptive` bool; `outlier_k` > 0; `iterations` >= 1.
+
+    **Returns:** `denoised_vertices` `(N, 3)` [m], `normals` `(N, 3)` unit,
+    `outlier` `(N,)` bool.
+    """
+    v, f = _check_mesh(vertices, faces)
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 7:
+        raise ValueError(f"k: must be an integer >= 7, got {k!r}")
+    if k > len(v):
+        raise ValueError(f"k: must not exceed the number of vertices ({len(v)}), got {k}")
+    outlier_k = _check_positive("outlier_k", outlier_k)
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+        raise ValueError(f"iterations: must be an integer >= 1, got {iterations!r}")
+    N, k = len(v), int(k)
+
+    n_area, has_area = _unit(_area_normals(v, f))
+    _, nbr = cKDTree(v).query(v, k=k)
+    nbr = np.asarray(nbr, dtype=np.int64)
+    # Make sure each vertex is first in its own list (ties with duplicates).
+    self_pos = np.argmax(nbr == np.arange(N)[:, None], axis=1)
+    has_self = (nbr == np.arange(N)[:, None]).any(1)
+    nbr[has_self, self_pos[has_self]] = nbr[has_self, 0]
+    nbr[:, 0] = np.arange(N)
+    # Vertices in no face take the mean normal of their neighbours.
+    n0 = n_area.copy()
+    fill, _ = _unit(n_area[nbr].sum(1))
+    n0[~has_area] = fill[~has_area]
+    has0 = np.linalg.norm(n0, axis=1) > 0
+    n0[~has0] = [0.0, 1.0, 0.0]
+    same_side = np.einsum("nkj,nj->nk", n0[nbr], n0) > 0
+    same_side[:, 0] = True
+
+    def outlier_round(mask):
+        fit = _mesh_fits(v, nbr, n0, same_side & mask, centre_weight=0.0)
+        res = np.abs(fit["resid"][:, 0])
+        r_n = np.where(fit["used"], np.abs(fit["resid"]), np.nan)
+        r_n[:, 0] = np.nan
+        med = np.nanmedian(np.where(np.isnan(r_n).all(1, keepdims=True), 0.0, r_n), axis=1)
+        n_used = fit["used"].sum(1)
+        dof_corr = np.sqrt(n_used / np.maximum(n_used - _NPARAM, 1))
+        scale = np.maximum(_MAD * med * dof_corr, 1e-3 * fit["rho"])
+        return fit["ok"] & (res > outlier_k * scale)
+
+    first = outlier_round(np.ones((N, k), dtype=bool))
+    outlier = outlier_round(~first[nbr])
+    keep = ~outlier[nbr]
+
+    normal = n0
+    for _ in range(iterations):
+        fit = _mesh_fits(v, nbr, normal, same_side & keep, centre_weight=1.0)
+        normal_new, pts = _evaluate_mesh_fits(v, nbr, fit, n0, adaptive)
+        normal = np.where(np.isfinite(normal_new).all(1, keepdims=True), normal_new, normal)
+        good = np.isfinite(pts).all(1)
+    denoised = np.where(good[:, None], pts, v)
+    normal, ok = _unit(np.where(good[:, None], normal, n0))
+    normal[~ok] = n0[~ok]
+    return denoised, normal, outlier
+
+
+def _evaluate_mesh_fits(v, nbr, fit, n_orient, adaptive):
+    """Pick, for every vertex, the best fit among its candidates and evaluate it
+    there: `(normals (N, 3), points (N, 3))`, NaN where no fit is usable."""
+    N, k = nbr.shape
+    idx = np.arange(N)
+    best_key = np.full(N, np.inf)
+    best_n = np.full((N, 3), np.nan)
+    best_p = np.full((N, 3), np.nan)
+    cands = range(k) if adaptive else range(1)
+    for m in cands:
+        c = nbr[:, m]
+        contains = (nbr[c] == idx[:, None]).any(1)
+        rho = fit["rho"][c]
+        t1, t2, nc = fit["t1"][c], fit["t2"][c], fit["n"][c]
+        d = v - v[c]
+        xs = np.einsum("nj,nj->n", d, t1) / rho
+        ys = np.einsum("nj,nj->n", d, t2) / rho
+        coef = fit["coef"][c]
+        phi = _basis(xs, ys)
+        gx = np.zeros_like(phi)
+        gx[:, 1], gx[:, 3], gx[:, 4] = 1.0, 2 * xs, ys
+        gy = np.zeros_like(phi)
+        gy[:, 2], gy[:, 4], gy[:, 5] = 1.0, xs, 2 * ys
+        hgt = np.einsum("ni,ni->n", phi, coef)
+        hx = np.einsum("ni,ni->n", gx, coef) / rho
+        hy = np.einsum("ni,ni->n", gy, coef) / rho
+        Minv = fit["Minv"][c]
+        var = (np.einsum("ni,nij,nj->n", gx, Minv, gx) + np.einsum("ni,nij,nj->n", gy, Minv, gy)) / rho**2
+        sig2 = fit["sigma2"][c]
+        key = np.where(np.isinf(sig2), _BIG, sig2 * var)
+        key = np.where(fit["ok"][c] & contains & np.isfinite(key), key, np.inf)
+        nrm = nc - hx[:, None] * t1 - hy[:, None] * t2
+        nrm, okn = _unit(nrm)
+        flip = np.where(np.einsum("nj,nj->n", nrm, n_orient) < 0, -1.0, 1.0)
+        pts = v[c] + (xs * rho)[:, None] * t1 + (ys * rho)[:, None] * t2 + hgt[:, None] * nc
+        better = (key < best_key) & okn
+        best_key = np.where(better, key, best_key)
+        best_n = np.where(better[:, None], nrm * flip[:, None], best_n)
+        best_p = np.where(better[:, None], pts, best_p)
+    return best_n, best_p

@@ -1,0 +1,105 @@
+"""Reproductions of the paper's tables and figures on the synthetic objects.
+
+`table1` is the analogue of Table 1 (light selection on Objects A-D) with
+Figure 8 (coverage against the number of lights) for each object, and, going
+past the paper, the greedy count against the exact minimum of an integer
+program on the same covering problem.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+__all__ = ["table1"]
+
+
+def table1(out_dir: str, resolution: int = 64, objects=("A", "B", "C", "D"), th1: float = 0.8,
+           target: float = 0.99, diffuse_deg: float = 60.0, specular_deg: float = 20.0,
+           exact: bool = True) -> dict:
+    """Light selection on each object under the paper's scanner and 60 candidates.
+
+    Writes `table1.md`, `table1.json` and `fig8_<object>.png` into `out_dir`.
+    """
+    from data_synth.scans import make_scan
+
+    from .classify import Thresholds, classify_scan
+    from .io import atomic_write
+    from .lights import exact_minimum, plot_coverage, select_lights
+
+    os.makedirs(out_dir, exist_ok=True)
+    thresholds = Thresholds(diffuse_deg=diffuse_deg, specular_deg=specular_deg)
+    rows = []
+    for name in objects:
+        scan, _ = make_scan(name, resolution=resolution)
+        t0 = time.perf_counter()
+        m = classify_scan(scan, thresholds, use_observations=False)
+        t_classify = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        sel = select_lights(m.diffuse_only, m.strong_specular, m.seen, th1=th1, target=target)
+        t_select = time.perf_counter() - t0
+        row = {
+            "object": name, "points": scan.n_points, "seen_points": sel.seen_points,
+            "candidates": scan.n_lights, "selected": len(sel.selected),
+            "diffuse_only_count": sel.diffuse_only_count, "selection": sel.selected,
+            "diffuse_coverage": sel.diffuse_coverage, "diffuse_coverage_all": sel.diffuse_coverage_all,
+            "specular_coverage": sel.specular_coverage, "specular_coverage_all": sel.specular_coverage_all,
+            "seconds_classify": t_classify, "seconds_select": t_select,
+        }
+        if exact:
+            full = select_lights(m.diffuse_only, m.strong_specular, m.seen, target=1.0, min_gain=0.0)
+            row["greedy_full_cover"] = len(full.selected)
+            row["exact_full_cover"] = exact_minimum(m.diffuse_only, m.strong_specular, m.seen)["count"]
+            row["exact_at_target"] = exact_minimum(m.diffuse_only, m.strong_specular, m.seen,
+                                                   target=target)["count"]
+        plot_coverage(sel, os.path.join(out_dir, f"fig8_{name}.png"), title=f"Object {name}")
+        rows.append(row)
+
+    def pct(x):
+        return f"{100 * x:.2f}%"
+
+    lines = [
+        "# Table 1 analogue: light selection on the synthetic objects",
+        "",
+        f"Scanner of §2.1 (camera 0.6 m from the axis), 60 candidate lights (10 x 6 grid, 5 cm), "
+        f"theta_th1 = {diffuse_deg}°, theta_th2 = {specular_deg}°, th1 = {th1:.0%}, "
+        f"stop at {target:.0%} of the all-candidate specular limit; mesh resolution {resolution}. "
+        "Coverages are fractions of the points the camera sees.",
+        "",
+        "| | " + " | ".join(f"Object {r['object']}" for r in rows) + " |",
+        "|---|" + "---|" * len(rows),
+        "| Number of selected light positions (for diffuse only) | "
+        + " | ".join(f"{r['selected']} ({r['diffuse_only_count']})" for r in rows) + " |",
+        "| Diffuse reflection component (with our method) | "
+        + " | ".join(pct(r["diffuse_coverage"]) for r in rows) + " |",
+        "| Diffuse reflection component (with 60 light positions) | "
+        + " | ".join(pct(r["diffuse_coverage_all"]) for r in rows) + " |",
+        "| Specular reflection component (with our method) | "
+        + " | ".join(pct(r["specular_coverage"]) for r in rows) + " |",
+        "| Specular reflection component (with 60 light positions) | "
+        + " | ".join(pct(r["specular_coverage_all"]) for r in rows) + " |",
+        "| Share of the specular limit reached | "
+        + " | ".join(pct(r["specular_coverage"] / max(r["specular_coverage_all"], 1e-12)) for r in rows)
+        + " |",
+    ]
+    if exact:
+        lines += [
+            f"| Exact minimum for the same target (greedy: above) | "
+            + " | ".join(str(r["exact_at_target"]) for r in rows) + " |",
+            "| Full cover of the limit: greedy / exact minimum | "
+            + " | ".join(f"{r['greedy_full_cover']} / {r['exact_full_cover']}" for r in rows) + " |",
+        ]
+    lines += [
+        "| Seconds: classification (N x 60 incl. shadow rays) / selection | "
+        + " | ".join(f"{r['seconds_classify']:.2f} / {r['seconds_select']:.3f}" for r in rows) + " |",
+        "",
+        "Paper (real objects): 12(5), 14(4), 10(3), 9(4) lights; diffuse 100 %; specular "
+        "83.46 / 91.02 / 89.17 / 91.72 % with the selection against 83.52 / 93.56 / 91.27 / 94.90 % "
+        "with all 60.",
+        "",
+    ]
+    text = "\n".join(lines)
+    atomic_write(os.path.join(out_dir, "table1.md"), lambda fh: fh.write(text.encode()))
+    atomic_write(os.path.join(out_dir, "table1.json"), lambda fh: fh.write(json.dumps(rows, indent=2).encode()))
+    return {"rows": rows, "markdown": text}
