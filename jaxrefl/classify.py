@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .raycast import RayCaster
-from .rig import observation_geometry
+from .rig import observation_angles
 
 __all__ = ["T_INVALID", "T_NONE", "T_DIFF", "T_SPEC", "Thresholds", "Measurability", "classify",
            "classify_scan"]
@@ -82,8 +82,7 @@ def classify(points, normals, cam_pos, light_pos, caster: RayCaster,
     n = len(points)
     light_pos = np.asarray(light_pos, dtype=np.float64)
     k = light_pos.shape[-2]
-    g = observation_geometry(points, normals, cam_pos, light_pos)
-    cos_i, cos_o = np.asarray(g.cos_i), np.asarray(g.cos_o)
+    cos_i, cos_o, theta_r = (np.asarray(a) for a in observation_angles(points, normals, cam_pos, light_pos))
 
     # Camera visibility: one ray per distinct camera position of each point.
     cam = np.asarray(cam_pos, dtype=np.float64)
@@ -98,16 +97,12 @@ def classify(points, normals, cam_pos, light_pos, caster: RayCaster,
         if observed.shape != (n, k):
             raise ValueError(f"observed: must be (N, K) = {(n, k)}, got {observed.shape}")
         candidate &= observed
-    rows, cols = np.nonzero(candidate)
-    lights = np.broadcast_to(light_pos if light_pos.ndim == 3 else light_pos[None], (n, k, 3))
-    lit = ~caster.segments_blocked(points[rows], caster.offset_normals[rows], lights[rows, cols])
-    measurable = np.zeros((n, k), dtype=bool)
-    measurable[rows[lit], cols[lit]] = True
+    measurable = caster.visibility(light_pos, where=candidate)
 
-    diffuse, specular, classes = _classes(measurable, g.theta_r, np.radians(thresholds.diffuse_deg),
+    diffuse, specular, classes = _classes(measurable, theta_r, np.radians(thresholds.diffuse_deg),
                                           np.radians(thresholds.specular_deg))
     return Measurability(measurable, np.asarray(diffuse), np.asarray(specular), np.asarray(classes),
-                         np.asarray(g.theta_r), seen)
+                         theta_r, seen)
 
 
 def classify_scan(scan, thresholds: Thresholds = Thresholds(), caster: RayCaster | None = None,

@@ -273,6 +273,40 @@ def _basis(s, t):
     return np.stack([np.ones_like(s), s, t, s * s, s * t, t * t], axis=-1)
 
 
+_EXP = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))  # monomial exponents of the basis
+_MOM = tuple((p, q) for p in range(5) for q in range(5 - p))  # s^p t^q needed by A^T A
+# Entries of the inverse normal matrix that the slope variances need (upper triangle).
+_VAR_IDX = ((1, 1), (3, 3), (4, 4), (1, 3), (1, 4), (3, 4),
+            (2, 2), (5, 5), (2, 4), (2, 5), (4, 5))
+
+
+def _assemble(mom: dict, rmom: dict):
+    """Normal matrix `(..., 6, 6)` and right-hand side `(..., 6)` from the moments
+    `mom[(p, q)] = sum w s^p t^q` and `rmom[(p, q)] = sum w z s^p t^q`."""
+    M = np.stack([np.stack([mom[(pa + pb, qa + qb)] for pb, qb in _EXP], -1) for pa, qa in _EXP], -2)
+    b = np.stack([rmom[e] for e in _EXP], -1)
+    return M, b
+
+
+def _evaluate(c, s, t):
+    """Quadratic with coefficients `c` (sequence of 6 arrays) at `s, t`: value
+    and the two first derivatives."""
+    val = c[0] + s * (c[1] + c[3] * s + c[4] * t) + t * (c[2] + c[5] * t)
+    ds = c[1] + 2 * c[3] * s + c[4] * t
+    dt = c[2] + c[4] * s + 2 * c[5] * t
+    return val, ds, dt
+
+
+def _slope_variances(m, s, t):
+    """`g_s^T Minv g_s` and `g_t^T Minv g_t` for the basis gradients at `s, t`,
+    with `m[(i, j)]` the needed entries of the symmetric inverse normal matrix."""
+    vs = (m[(1, 1)] + 4 * s * s * m[(3, 3)] + t * t * m[(4, 4)]
+          + 4 * s * m[(1, 3)] + 2 * t * m[(1, 4)] + 4 * s * t * m[(3, 4)])
+    vt = (m[(2, 2)] + s * s * m[(4, 4)] + 4 * t * t * m[(5, 5)]
+          + 2 * s * m[(2, 4)] + 4 * t * m[(2, 5)] + 4 * s * t * m[(4, 5)])
+    return vs, vt
+
+
 def _solve_batched(M: np.ndarray, ok: np.ndarray):
     """Inverse of each well-conditioned `(..., 6, 6)` SPD matrix; `ok` is updated
     with the conditioning test (eigenvalue ratio >= 1e-10) and the others get I."""

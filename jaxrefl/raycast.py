@@ -182,6 +182,15 @@ class RayCaster:
         side = np.where(side == 0, 1.0, side)
         return points + self.offset * (side * normals + 0.1 * directions)
 
+    def _blocked(self, points, normals, targets) -> np.ndarray:
+        """Occlusion of segments from surface points to targets, all `(n, 3)`; one chunk."""
+        dvec = targets - points
+        length = np.linalg.norm(dvec, axis=-1)
+        unit = dvec / np.where(length > 0, length, 1.0)[:, None]
+        o = self.offset_origins(points, normals, unit).astype(np.float32)
+        tfar = np.maximum(length - 3.0 * self.offset, 0.0).astype(np.float32)
+        return self._scene.run(o, unit.astype(np.float32), dists=tfar, query="OCCLUDED") != _NO_HIT
+
     def segments_blocked(self, points, normals, targets) -> np.ndarray:
         """Is the segment from each surface point to its target blocked?
 
@@ -195,24 +204,20 @@ class RayCaster:
         out = np.empty(len(points), dtype=bool)
 
         def run(a, b):  # ray set-up happens per chunk, inside the worker thread
-            p = points[a:b]
-            dvec = targets[a:b] - p
-            length = np.linalg.norm(dvec, axis=-1)
-            unit = dvec / np.where(length > 0, length, 1.0)[:, None]
-            o = self.offset_origins(p, normals[a:b], unit).astype(np.float32)
-            tfar = np.maximum(length - 3.0 * self.offset, 0.0).astype(np.float32)
-            out[a:b] = self._scene.run(o, unit.astype(np.float32), dists=tfar, query="OCCLUDED") != _NO_HIT
+            out[a:b] = self._blocked(points[a:b], normals[a:b], targets[a:b])
 
         self._map(run, len(points))
         return out
 
-    def visibility(self, positions, vertices=None) -> np.ndarray:
+    def visibility(self, positions, vertices=None, where=None) -> np.ndarray:
         """Unoccluded line of sight between mesh vertices and positions.
 
         **Arguments:** `positions` `(3,)`, `(M, 3)`, `(P, 1, 3)` or `(P, M, 3)`
         (lights or camera centres) for the vertices `vertices` `(P,)` (indices;
-        default all, `P = N`). Rays start from the vertices, stepped off along
-        `offset_normals`.
+        default all, `P = N`); `where` optional `(P, M)` bool: trace only these
+        pairs (the others come back False). Rays start from the vertices,
+        stepped off along `offset_normals`; gathering happens per chunk in the
+        worker threads.
 
         **Returns:** `(P, M)` bool, True where nothing blocks the segment. The
         facing test (cosines > 0) is separate: see `rig.observation_geometry`.
@@ -221,11 +226,21 @@ class RayCaster:
         p = len(idx)
         pos = np.asarray(positions, dtype=np.float64)
         pos = pos.reshape((1,) * (3 - pos.ndim) + pos.shape)
-        m = pos.shape[1]
-        pos = np.broadcast_to(pos, (p, m, 3)).reshape(-1, 3)
-        pts = np.repeat(self.vertices[idx], m, axis=0)
-        nrm = np.repeat(self.offset_normals[idx], m, axis=0)
-        return ~self.segments_blocked(pts, nrm, pos).reshape(p, m)
+        m = pos.shape[1] if where is None else np.shape(where)[1]
+        if pos.shape[0] not in (1, p) or pos.shape[1] not in (1, m):
+            raise ValueError(f"positions {np.shape(positions)} do not fit {p} vertices x {m} targets")
+        flat = np.arange(p * m) if where is None else np.flatnonzero(where)
+        out = np.zeros(p * m, dtype=bool)
+        row_of = (lambda i: i) if pos.shape[0] > 1 else (lambda i: 0)
+        col_of = (lambda j: j) if pos.shape[1] > 1 else (lambda j: 0)
+
+        def run(a, b):
+            i, j = np.divmod(flat[a:b], m)
+            v = idx[i]
+            out[flat[a:b]] = ~self._blocked(self.vertices[v], self.offset_normals[v], pos[row_of(i), col_of(j)])
+
+        self._map(run, len(flat))
+        return out.reshape(p, m)
 
     def all_hits(self, origins, directions, max_hits: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Up to `max_hits` intersections along each ray, nearest first.

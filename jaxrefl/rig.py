@@ -36,6 +36,7 @@ __all__ = [
     "PinholeCamera",
     "ObservationGeometry",
     "observation_geometry",
+    "observation_angles",
 ]
 
 
@@ -215,14 +216,17 @@ def _geometry_rows(points, normals, cam_pos, light_pos):
     return jax.vmap(row)(points, normals, cam_pos, light_pos)
 
 
-def observation_geometry(points, normals, cam_pos, light_pos) -> ObservationGeometry:
-    """Geometry of every (point, light) observation.
+@jax.jit
+def _angle_rows(points, normals, cam_pos, light_pos):
+    def row(p, n, c, lp):
+        l, _ = _unit_and_length(lp - p[None])
+        v, _ = _unit_and_length(c - p[None])
+        return brdf.shading_geometry(n[None], l, v)
 
-    **Arguments:** `points` `(N, 3)`; `normals` `(N, 3)` unit; `cam_pos`
-    `(3,)`, `(M, 3)` or `(N, M, 3)`; `light_pos` `(M, 3)` or `(N, M, 3)` [m].
+    return jax.vmap(row)(points, normals, cam_pos, light_pos)
 
-    **Returns:** `ObservationGeometry` with `(N, M)` fields.
-    """
+
+def _broadcast_rows(points, cam_pos, light_pos):
     points = jnp.asarray(points)
     n = points.shape[0]
     light_pos = jnp.asarray(light_pos)
@@ -231,4 +235,23 @@ def observation_geometry(points, normals, cam_pos, light_pos) -> ObservationGeom
     m = light_pos.shape[1]
     cam_pos = jnp.asarray(cam_pos)
     cam_pos = jnp.broadcast_to(cam_pos.reshape((1,) * (3 - cam_pos.ndim) + cam_pos.shape), (n, m, 3))
+    return points, cam_pos, light_pos
+
+
+def observation_angles(points, normals, cam_pos, light_pos):
+    """`(cos_i, cos_o, theta_r)`, each `(N, M)`: `observation_geometry` without the
+    vector fields (a lighter pass for classification). Arguments as there."""
+    points, cam_pos, light_pos = _broadcast_rows(points, cam_pos, light_pos)
+    return _angle_rows(points, jnp.asarray(normals), cam_pos, light_pos)
+
+
+def observation_geometry(points, normals, cam_pos, light_pos) -> ObservationGeometry:
+    """Geometry of every (point, light) observation.
+
+    **Arguments:** `points` `(N, 3)`; `normals` `(N, 3)` unit; `cam_pos`
+    `(3,)`, `(M, 3)` or `(N, M, 3)`; `light_pos` `(M, 3)` or `(N, M, 3)` [m].
+
+    **Returns:** `ObservationGeometry` with `(N, M)` fields.
+    """
+    points, cam_pos, light_pos = _broadcast_rows(points, cam_pos, light_pos)
     return _geometry_rows(points, jnp.asarray(normals), cam_pos, light_pos)

@@ -70,6 +70,8 @@ def test_observation_geometry_shapes_and_units():
         cam_full = np.broadcast_to(cam.reshape((1,) * (3 - cam.ndim) + cam.shape), (7, 4, 3))
         np.testing.assert_allclose(np.asarray(g.cos_o),
                                    np.einsum("nmi,ni->nm", unit(cam_full - pts[:, None]), nrm))
+        for a, b in zip(rig.observation_angles(pts, nrm, cam, lights), (g.cos_i, g.cos_o, g.theta_r)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_pinhole_opencv_convention():
