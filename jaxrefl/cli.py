@@ -127,61 +127,12 @@ def cmd_synth(args) -> int:
     return 0
 
 
-def scan_picture(scan, what: str = "radiance", light: int = 0, view: str = "auto", width: int = 512):
-    """uint8 RGB picture of a scan (see `jaxrefl render --help`)."""
-    from . import render
-    from .raycast import RayCaster
-    from .rig import PinholeCamera
-
-    caster = RayCaster(scan.vertices, scan.faces)
-    rig = scan.meta.get("rig", {})
-    if view == "auto":
-        view = "camera" if rig.get("type") == "pinhole" else "cylindrical"
-    if view == "camera":
-        if rig.get("type") == "pinhole":
-            cam = PinholeCamera(K=np.array(rig["K"]), R=np.array(rig["R"]), t=np.array(rig["t"]),
-                                width=rig["width"], height=rig["height"], dist=np.array(rig["dist"]))
-        else:
-            center = 0.5 * (scan.vertices.min(0) + scan.vertices.max(0))
-            cam = PinholeCamera.look_at(center + [0.0, 0.0, 0.6], center, width=width,
-                                        height=int(width * 0.75))
-        hits, shape = render.camera_hits(caster, cam)
-    else:
-        hits, shape = render.cylindrical_hits(caster, width=width)
-
-    def need(name):
-        value = getattr(scan, name)
-        if value is None:
-            raise ValueError(f"{name}: the scan has none, so --what cannot be drawn")
-        return value
-
-    if what == "radiance":
-        rad = need("radiance")
-        if not 0 <= light < scan.n_lights:
-            raise ValueError(f"light: must be in [0, {scan.n_lights - 1}], got {light}")
-        ok = scan.valid[:, light] if scan.valid is not None else np.ones(scan.n_points, bool)
-        values = np.where(ok[:, None], rad[:, light], np.nan)
-        return render.to_srgb8(render.shade(hits, scan.faces, values, shape))
-    if what == "pd":
-        return render.to_srgb8(render.shade(hits, scan.faces, need("true_pd"), shape), exposure=1.0)
-    if what == "ps":
-        return render.colormap(render.shade(hits, scan.faces, need("true_ps"), shape), "magma")
-    if what == "roughness":
-        rough = scan.true_sigma if scan.true_sigma is not None else need("true_alpha")
-        return render.colormap(render.shade(hits, scan.faces, rough, shape), "gray")
-    if what == "normals":
-        img = render.shade(hits, scan.faces, scan.normals, shape)
-        return render.to_srgb8(np.where(np.isfinite(img), 0.5 * (img + 1.0), np.nan), exposure=1.0)
-    count = scan.observed().sum(axis=1).astype(np.float64)
-    return render.colormap(render.shade(hits, scan.faces, count, shape), "viridis", vmin=0)
-
-
 def cmd_render(args) -> int:
     from . import render
     from .io import load_scan
 
     scan = load_scan(args.scan)
-    image = scan_picture(scan, args.what, args.light, args.view, args.width)
+    image = render.scan_picture(scan, args.what, args.light, args.view, args.width)
     render.save_png(args.out, image)
     print(f"wrote {args.out} ({image.shape[1]}x{image.shape[0]})")
     return 0

@@ -75,7 +75,6 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
 
     from . import __version__, render
     from .classify import classify_scan
-    from .cli import scan_picture
     from .io import atomic_write, save_scan
     from .lights import plot_coverage, select_lights
 
@@ -95,8 +94,8 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
     brightest = int(np.argmax(scan_a.radiance.sum(axis=(0, 2))))
     for what, name in (("pd", "A_true_pd.png"), ("ps", "A_true_ps.png"),
                        ("roughness", "A_true_roughness.png"), ("observations", "A_observations.png")):
-        render.save_png(out_path(name), scan_picture(scan_a, what))
-    render.save_png(out_path("A_radiance.png"), scan_picture(scan_a, "radiance", light=brightest))
+        render.save_png(out_path(name), render.scan_picture(scan_a, what))
+    render.save_png(out_path("A_radiance.png"), render.scan_picture(scan_a, "radiance", light=brightest))
     seconds["object_A"] = time.perf_counter() - t
 
     # Light selection (§2.2) on Object A's geometry: which of the 60 candidates to capture with.
@@ -113,8 +112,8 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
                                  global_illumination=True, samples=samples, seed=seed, progress=progress)
     direct_e, _ = make_scan("E", resolution=resolution, setup="diffuse", lights=lights, seed=seed)
     save_scan(out_path("scan_E_diffuse_gi.npz"), scan_e)
-    render.save_png(out_path("E_gi.png"), scan_picture(scan_e, "radiance", light=0))
-    render.save_png(out_path("E_direct.png"), scan_picture(direct_e, "radiance", light=0))
+    render.save_png(out_path("E_gi.png"), render.scan_picture(scan_e, "radiance", light=0))
+    render.save_png(out_path("E_direct.png"), render.scan_picture(direct_e, "radiance", light=0))
     fold = fold_coordinate(scan_e.vertices)
     gi_lum = scan_e.radiance[:, 0].mean(axis=1)
     direct_lum = direct_e.radiance[:, 0].mean(axis=1)

@@ -22,6 +22,7 @@ __all__ = [
     "to_srgb8",
     "colormap",
     "save_png",
+    "scan_picture",
 ]
 
 
@@ -109,3 +110,48 @@ def save_png(path, image: np.ndarray) -> None:
     from .io import atomic_write
 
     atomic_write(path, lambda fh: imsave(fh, image, format="png"))
+
+
+def scan_picture(scan, what: str = "radiance", light: int = 0, view: str = "auto", width: int = 512):
+    """uint8 RGB picture of a scan (see `jaxrefl render --help`)."""
+    caster = RayCaster(scan.vertices, scan.faces)
+    rig = scan.meta.get("rig", {})
+    if view == "auto":
+        view = "camera" if rig.get("type") == "pinhole" else "cylindrical"
+    if view == "camera":
+        if rig.get("type") == "pinhole":
+            cam = PinholeCamera(K=np.array(rig["K"]), R=np.array(rig["R"]), t=np.array(rig["t"]),
+                                width=rig["width"], height=rig["height"], dist=np.array(rig["dist"]))
+        else:
+            center = 0.5 * (scan.vertices.min(0) + scan.vertices.max(0))
+            cam = PinholeCamera.look_at(center + [0.0, 0.0, 0.6], center, width=width,
+                                        height=int(width * 0.75))
+        hits, shape = camera_hits(caster, cam)
+    else:
+        hits, shape = cylindrical_hits(caster, width=width)
+
+    def need(name):
+        value = getattr(scan, name)
+        if value is None:
+            raise ValueError(f"{name}: the scan has none, so --what cannot be drawn")
+        return value
+
+    if what == "radiance":
+        rad = need("radiance")
+        if not 0 <= light < scan.n_lights:
+            raise ValueError(f"light: must be in [0, {scan.n_lights - 1}], got {light}")
+        ok = scan.valid[:, light] if scan.valid is not None else np.ones(scan.n_points, bool)
+        values = np.where(ok[:, None], rad[:, light], np.nan)
+        return to_srgb8(shade(hits, scan.faces, values, shape))
+    if what == "pd":
+        return to_srgb8(shade(hits, scan.faces, need("true_pd"), shape), exposure=1.0)
+    if what == "ps":
+        return colormap(shade(hits, scan.faces, need("true_ps"), shape), "magma")
+    if what == "roughness":
+        rough = scan.true_sigma if scan.true_sigma is not None else need("true_alpha")
+        return colormap(shade(hits, scan.faces, rough, shape), "gray")
+    if what == "normals":
+        img = shade(hits, scan.faces, scan.normals, shape)
+        return to_srgb8(np.where(np.isfinite(img), 0.5 * (img + 1.0), np.nan), exposure=1.0)
+    count = scan.observed().sum(axis=1).astype(np.float64)
+    return colormap(shade(hits, scan.faces, count, shape), "viridis", vmin=0)
