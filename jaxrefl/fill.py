@@ -1,0 +1,86 @@
+"""Filling parameters that could not be estimated, from mesh neighbours.
+
+The paper interpolates inside a W x W window of the range image (W = 5). On a
+mesh the window becomes the `(W - 1) / 2`-ring: the vertices at most that many
+edges away. `window_fill` averages the measured values there; points with no
+measured vertex in their window are then reached by repeated 1-ring averaging
+(diffusion) and reported separately, so callers can flag them `unresolved`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["vertex_adjacency", "FillResult", "window_fill"]
+
+
+def vertex_adjacency(faces, n_vertices: int) -> sp.csr_matrix:
+    """Symmetric 0/1 vertex adjacency `(N, N)` of a triangle mesh (no self loops)."""
+    f = np.asarray(faces, dtype=np.int64)
+    i = np.concatenate([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
+    j = np.concatenate([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
+    a = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(n_vertices, n_vertices))
+    a.data[:] = 1.0
+    a.setdiag(0)
+    a.eliminate_zeros()
+    return a
+
+
+class FillResult(NamedTuple):
+    """`values` `(N, C)` with every row set; `window` `(N,)` bool: filled from
+    measured vertices inside the window; `diffused` `(N,)` bool: filled from
+    farther away (or, in a component with nothing measured, the global median)."""
+
+    values: np.ndarray
+    window: np.ndarray
+    diffused: np.ndarray
+
+
+def window_fill(values, known, adjacency: sp.csr_matrix, window: int = 5, max_sweeps: int = 10_000) -> FillResult:
+    """Fill rows of `values` `(N, C)` (or `(N,)`) where `known` `(N,)` is False.
+
+    **Arguments:** `adjacency` from `vertex_adjacency`; `window` the paper's W
+    (odd, >= 3): rows see the `(W - 1) / 2`-ring around them.
+    """
+    if window < 3 or window % 2 == 0:
+        raise ValueError(f"window must be odd and >= 3, got {window}")
+    vals = np.asarray(values, dtype=np.float64)
+    squeeze = vals.ndim == 1
+    vals = vals.reshape(len(vals), -1).copy()
+    known = np.asarray(known, dtype=bool)
+    n = len(vals)
+    if not known.any():
+        raise ValueError("window_fill: no measured value to fill from")
+    step = adjacency + sp.identity(n, format="csr")
+    reach = sp.identity(n, format="csr")
+    for _ in range((window - 1) // 2):
+        reach = reach @ step
+    reach = (reach > 0).astype(np.float64)
+    k = known.astype(np.float64)
+    counts = reach @ k
+    sums = reach @ (vals * k[:, None])
+    in_window = ~known & (counts > 0)
+    out = vals.copy()
+    out[in_window] = sums[in_window] / counts[in_window, None]
+
+    filled = known | in_window
+    far = ~filled
+    sweeps = 0
+    while far.any() and sweeps < max_sweeps:
+        f = filled.astype(np.float64)
+        c = adjacency @ f
+        s = adjacency @ (out * f[:, None])
+        grow = ~filled & (c > 0)
+        if not grow.any():
+            break
+        out[grow] = s[grow] / c[grow, None]
+        filled |= grow
+        sweeps += 1
+    orphan = ~filled  # components with nothing measured
+    if orphan.any():
+        out[orphan] = np.median(vals[known], axis=0)
+    result = out[:, 0] if squeeze else out
+    return FillResult(result, in_window, far)

@@ -1,0 +1,373 @@
+"""Method I: dense inverse local rendering (paper §3).
+
+Per point, from its classified samples (`classify`):
+
+1. **pd** — default: least squares over all diffuse-only (`T_diff`) samples,
+   `pd = pi sum(E y) / sum(E^2)` per channel, `E = Y cos_i / C^2`; `paper=True`:
+   Eq. 5 with the single `T_diff` sample of smallest `theta_r`. A point with no
+   `T_diff` sample starts from its least specular sample and is refined below.
+2. **ps, roughness** — the grey specular part `s = y - E pd / pi` of the strong
+   specular (`T_spec`) samples gives `z` with `ln z = a - b x`, linear in
+   (`a`, `b`): Torrance-Sparrow `z = s cos_i cos_o / E`, `x = theta_r^2`,
+   `a = ln ps`, `b = 1 / (2 sigma^2)` (Eq. 7: `z` is the paper's `i_s cos theta_v`
+   with `Y / C^2` divided out); Ward `z = 4 pi s sqrt(cos_i cos_o) / E`,
+   `x = tan^2 theta_r`, `a = ln(ps / alpha^2)`, `b = 1 / alpha^2`. Two samples
+   give the closed form; more give weighted least squares in the log domain.
+3. **Polish** — Levenberg-Marquardt on the full model over all valid samples
+   (`T_diff`, `T_spec`, `T_none`), parameters `(ln pd_rgb, ln ps, ln roughness)`,
+   residuals weighted by a noise model `sqrt((0.01 y)^2 + floor^2)`; all points
+   at once (`lm.solve_rows`: vmap inside one jit). Standard deviations from
+   the Gauss-Newton covariance at the solution.
+4. **Identifiability** — the specular part counts as measured when the point
+   has two or more usable `T_spec` samples, the fit is finite, and `ps` stands
+   `min_snr` standard deviations above 0 with roughness known to a factor
+   `e`. Otherwise ps and roughness come from the measured points in the
+   `window`-ring (`fill.window_fill`, in the log domain) and pd is re-fitted
+   with that specular part fixed (closed form).
+
+Status per point: 0 `measured` (everything from its own samples), 1
+`interpolated` (specular, or with no own sample pd too, from the window), 2
+`unresolved` (nothing measured within the window: filled from farther away;
+its standard deviations are infinite).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import brdf
+from .classify import T_DIFF, T_INVALID, T_SPEC, Thresholds, classify_scan
+from .fill import vertex_adjacency, window_fill
+from .lm import covariance, solve_rows
+from .raycast import RayCaster
+from .rig import observation_geometry
+
+__all__ = ["MEASURED", "INTERPOLATED", "UNRESOLVED", "LocalOptions", "Estimate", "estimate_local",
+           "specular_closed_form", "quantisation_step"]
+
+MEASURED, INTERPOLATED, UNRESOLVED = 0, 1, 2
+ROUGHNESS_NAME = {"torrance-sparrow": "sigma", "ward": "alpha"}
+_LN_FLOOR = -30.0  # ln of a reflectance so small it is zero for every purpose
+
+
+@dataclass(frozen=True)
+class LocalOptions:
+    """Options of Method I (see the module docstring)."""
+
+    model: str = "torrance-sparrow"
+    paper: bool = False
+    steps: int = 20
+    window: int = 5
+    min_snr: float = 3.0
+    solver: str = "lm"
+    thresholds: Thresholds = field(default_factory=Thresholds)
+
+    def __post_init__(self):
+        if self.model not in brdf.MODELS:
+            raise ValueError(f"model must be one of {sorted(brdf.MODELS)}, got {self.model!r}")
+        if self.solver not in ("lm", "optimistix"):
+            raise ValueError(f"solver must be 'lm' or 'optimistix', got {self.solver!r}")
+        if self.steps < 1:
+            raise ValueError("steps must be >= 1")
+
+
+@dataclass
+class Estimate:
+    """Per-point reflectance: `pd` `(N, 3)`, `ps` `(N,)`, `roughness` `(N,)`
+    [rad] (sigma or alpha, per `model`), `status` `(N,)` int8, standard
+    deviations `std_pd` `(N, 3)`, `std_ps`, `std_roughness` `(N,)`,
+    `specular_identifiable` `(N,)` bool, and `meta` (options, timings)."""
+
+    pd: np.ndarray
+    ps: np.ndarray
+    roughness: np.ndarray
+    status: np.ndarray
+    std_pd: np.ndarray
+    std_ps: np.ndarray
+    std_roughness: np.ndarray
+    specular_identifiable: np.ndarray
+    model: str
+    meta: dict = field(default_factory=dict)
+
+
+# -- closed forms ---------------------------------------------------------------------
+
+
+def _spec_coordinates(model, s, e, cos_i, cos_o, theta_r):
+    """(z, x) of the log-linear specular model; z <= 0 where s is not positive."""
+    ci, co = jnp.maximum(cos_i, brdf.COS_FLOOR), jnp.maximum(cos_o, brdf.COS_FLOOR)
+    e_safe = jnp.where(e > 0, e, 1.0)
+    if model == "torrance-sparrow":
+        return s * ci * co / e_safe, theta_r**2
+    c = jnp.maximum(jnp.cos(theta_r), brdf.COS_FLOOR)
+    return 4.0 * jnp.pi * s * jnp.sqrt(ci * co) / e_safe, (jnp.sin(theta_r) / c) ** 2
+
+
+def _to_parameters(model, a, b):
+    """(ln ps, ln roughness) from intercept a and slope b of ln z = a - b x."""
+    b = jnp.maximum(b, 1e-300)
+    if model == "torrance-sparrow":
+        return a, -0.5 * jnp.log(2.0 * b)
+    log_alpha = -0.5 * jnp.log(b)
+    return a + 2.0 * log_alpha, log_alpha
+
+
+def specular_closed_form(model, z, x, use):
+    """Weighted log-domain line fit per row.
+
+    **Arguments:** `z`, `x` `(N, M)`; `use` `(N, M)` bool. Weights `z^2`
+    (since var(ln z) ~ 1 / z^2); with exactly two samples this is the exact
+    two-equation solution of Eq. 7.
+
+    **Returns:** `(ln_ps, ln_roughness, ok)`, each `(N,)`; `ok` False where
+    fewer than two usable samples, equal `x`, or a non-decaying lobe.
+    """
+    use = use & (z > 0)
+    lz = jnp.log(jnp.where(use, z, 1.0))
+    w = jnp.where(use, z * z, 0.0)
+    w = w / jnp.maximum(jnp.max(w, axis=1, keepdims=True), 1e-300)
+    sw, sx, sy = w.sum(1), (w * x).sum(1), (w * lz).sum(1)
+    sxx, sxy = (w * x * x).sum(1), (w * x * lz).sum(1)
+    det = sw * sxx - sx * sx
+    enough = (use.sum(1) >= 2) & (det > 1e-14 * jnp.maximum(sw * sxx, 1e-300))
+    det = jnp.where(enough, det, 1.0)
+    slope = (sw * sxy - sx * sy) / det  # d ln z / d x = -b
+    a = (sy - slope * sx) / jnp.where(sw > 0, sw, 1.0)
+    b = -slope
+    ln_ps, ln_rough = _to_parameters(model, a, b)
+    ok = enough & (b > 0) & jnp.isfinite(ln_ps) & jnp.isfinite(ln_rough)
+    return jnp.where(ok, ln_ps, _LN_FLOOR), jnp.where(ok, ln_rough, jnp.log(0.1)), ok
+
+
+def quantisation_step(radiance, observed) -> float:
+    """Detect a quantised sensor: the common step of the observed values, or 0.
+
+    Returns the step when every observed value is (to 1e-3 of a step) an
+    integer multiple of the smallest positive gap between distinct values and
+    there are at most 2^16 distinct values; 0 otherwise.
+    """
+    vals = np.unique(np.asarray(radiance)[observed].ravel())
+    if len(vals) < 3 or len(vals) > 65536:
+        return 0.0
+    gaps = np.diff(vals)
+    step = float(gaps[gaps > 0].min())
+    ratio = vals / step
+    return step if np.all(np.abs(ratio - np.round(ratio)) < 1e-3 * np.maximum(1, ratio)) else 0.0
+
+
+# -- the full model per row --------------------------------------------------------------
+
+
+def _row_model(model, ln_pd, ln_ps, ln_rough, e, cos_i, cos_o, theta_r):
+    """Predicted radiance `(M, 3)` of one point."""
+    full, _ = brdf.MODELS[model]
+    f = jax.vmap(full, in_axes=(None, None, None, 0, 0, 0))(jnp.exp(ln_pd), jnp.exp(ln_ps), ln_rough,
+                                                              cos_i, cos_o, theta_r)
+    return f * e[:, None]
+
+
+@lru_cache(maxsize=None)
+def _make_residual(model):
+    """The weighted residual of one row (cached: jit keys on the function's identity)."""
+
+    def residual(p, d):
+        pred = _row_model(model, p[:3], p[3], p[4], d["e"], d["cos_i"], d["cos_o"], d["theta_r"])
+        return (jnp.where(d["use"][:, None], (d["y"] - pred) * d["w"], 0.0)).ravel()
+
+    return residual
+
+
+def _noise_weights(y, use, floor):
+    """1 / sqrt((0.01 y)^2 + floor^2), the relative-plus-floor noise model (M, 3)."""
+    row_max = jnp.max(jnp.where(use[..., None], y, 0.0), axis=(-2, -1), keepdims=True)
+    f = jnp.maximum(floor, 1e-4 * row_max)
+    return 1.0 / jnp.sqrt((0.01 * y) ** 2 + f**2)
+
+
+# -- the estimator ------------------------------------------------------------------------------
+
+
+def _prepare(scan, options, caster):
+    g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
+    m = classify_scan(scan, options.thresholds, caster=caster)
+    classes = m.classes
+    use = classes != T_INVALID
+    y = np.where(use[..., None], scan.radiance, 0.0).astype(np.float64)
+    cos_i, cos_o, theta_r = (np.asarray(a) for a in (g.cos_i, g.cos_o, g.theta_r))
+    e = scan.intensities()[None, :] * np.maximum(cos_i, 0.0) / np.asarray(g.light_distance) ** 2
+    return {"y": y, "e": np.where(use, e, 0.0), "cos_i": cos_i, "cos_o": cos_o, "theta_r": theta_r,
+            "use": use, "classes": classes}
+
+
+@jax.jit
+def _diffuse_init(y, e, use, classes, theta_r, paper):
+    """pd `(N, 3)` from T_diff samples (LS or Eq. 5) or, lacking any, the least specular sample."""
+    diff = use & (classes == T_DIFF)
+    ls = jnp.pi * jnp.sum(jnp.where(diff[..., None], e[..., None] * y, 0.0), 1) \
+        / jnp.maximum(jnp.sum(jnp.where(diff, e * e, 0.0), 1), 1e-300)[:, None]
+    # Eq. 5: the T_diff sample with the smallest theta_r (still > theta_th1).
+    best = jnp.argmin(jnp.where(diff, theta_r, jnp.inf), axis=1)
+    pick = lambda a: jnp.take_along_axis(a, best[:, None], 1)[:, 0]  # noqa: E731
+    eq5 = jnp.pi * jnp.take_along_axis(y, best[:, None, None], 1)[:, 0] / jnp.maximum(pick(e), 1e-300)[:, None]
+    # No T_diff sample: the valid sample with the largest theta_r bounds pd from above.
+    least = jnp.argmax(jnp.where(use, theta_r, -jnp.inf), axis=1)
+    e_least = jnp.take_along_axis(e, least[:, None], 1)[:, 0]
+    fallback = jnp.pi * jnp.take_along_axis(y, least[:, None, None], 1)[:, 0] / jnp.maximum(e_least, 1e-300)[:, None]
+    has_diff = diff.any(1)
+    pd = jnp.where(has_diff[:, None], jnp.where(paper, eq5, ls), fallback)
+    return jnp.where(use.any(1)[:, None], pd, 0.0), has_diff
+
+
+def _specular_init(model, data, pd, paper):
+    y, e, use, classes = data["y"], data["e"], data["use"], data["classes"]
+    spec_use = use & (classes == T_SPEC)
+    s = jnp.mean(y, -1) - e * jnp.mean(pd, -1)[:, None] / jnp.pi
+    z, x = _spec_coordinates(model, s, e, data["cos_i"], data["cos_o"], data["theta_r"])
+    n_spec = spec_use.sum(1)
+    if paper:  # Eq. 7: the two T_spec samples with the smallest theta_r
+        order = jnp.argsort(jnp.where(spec_use, data["theta_r"], jnp.inf), axis=1)
+        rank = jnp.argsort(order, axis=1)
+        spec_use = spec_use & (rank < 2)
+    else:  # fewer than two T_spec samples: start from every non-diffuse sample (weights z^2)
+        spec_use = jnp.where((n_spec >= 2)[:, None], spec_use, use & (classes != T_DIFF))
+    return specular_closed_form(model, z, x, spec_use) + (n_spec,)
+
+
+def _refit_diffuse(model, data, ln_ps, ln_rough, w):
+    """Closed-form pd `(N, 3)` and its std with the specular part fixed, over all valid samples."""
+    _, spec_fn = brdf.MODELS[model]
+    spec = jax.vmap(jax.vmap(spec_fn, in_axes=(None, None, 0, 0, 0)))(
+        jnp.exp(ln_ps), ln_rough, data["cos_i"], data["cos_o"], data["theta_r"])
+    e = data["e"]
+    diffuse_part = data["y"] - (e * spec)[..., None]
+    ww = jnp.where(data["use"][..., None], w * w, 0.0)
+    num = jnp.sum(ww * e[..., None] * diffuse_part, 1)
+    den = jnp.sum(ww * (e * e)[..., None], 1)
+    pd = jnp.pi * num / jnp.maximum(den, 1e-300)
+    resid = jnp.where(data["use"][..., None], (diffuse_part - e[..., None] * pd[:, None] / jnp.pi) * w, 0.0)
+    n = data["use"].sum(1)
+    s2 = jnp.sum(resid**2, 1) / jnp.maximum(n - 1, 1)[:, None]  # per channel
+    std = jnp.pi * jnp.sqrt(s2 / jnp.maximum(den, 1e-300))
+    return jnp.maximum(pd, 0.0), jnp.where(n[:, None] > 1, std, jnp.inf)
+
+
+def _solve_optimistix(residual, p0, data, steps):
+    import optimistix as optx
+
+    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
+
+    def one(p, d):
+        sol = optx.least_squares(lambda q, a: residual(q, a), solver, p, args=d, throw=False,
+                                 max_steps=max(steps, 64))
+        return sol.value
+
+    return jax.jit(jax.vmap(one))(p0, data)
+
+
+def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None) -> Estimate:
+    """Method I on a scan with radiance. See the module docstring.
+
+    **Returns:** `Estimate` (no NaN: unresolved values are filled, their
+    standard deviations infinite).
+    """
+    if scan.radiance is None:
+        raise ValueError("radiance: the scan has no observations to estimate from")
+    timings = {}
+    t0 = time.perf_counter()
+    caster = caster or RayCaster(scan.vertices, scan.faces)
+    data = _prepare(scan, options, caster)
+    q = quantisation_step(scan.radiance, data["use"])
+    floor = q / np.sqrt(12.0)
+    jdata = {k: jnp.asarray(v) for k, v in data.items()}
+    timings["classify"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    pd0, has_diff = _diffuse_init(jdata["y"], jdata["e"], jdata["use"], jdata["classes"], jdata["theta_r"],
+                                  options.paper)
+    ln_ps0, ln_rough0, spec_ok, n_spec = _specular_init(options.model, jdata, pd0, options.paper)
+    timings["closed_form"] = time.perf_counter() - t0
+
+    w = _noise_weights(jdata["y"], jdata["use"], floor)
+    lm_data = {"y": jdata["y"], "e": jdata["e"], "cos_i": jdata["cos_i"], "cos_o": jdata["cos_o"],
+               "theta_r": jdata["theta_r"], "use": jdata["use"], "w": w}
+    residual = _make_residual(options.model)
+    p0 = jnp.concatenate([jnp.log(jnp.maximum(pd0, 1e-6)), ln_ps0[:, None], ln_rough0[:, None]], axis=1)
+    t0 = time.perf_counter()
+    if options.paper:
+        params = p0
+    elif options.solver == "lm":
+        params = solve_rows(residual, p0, lm_data, options.steps).params
+    else:
+        params = _solve_optimistix(residual, p0, lm_data, options.steps)
+    params = jnp.where(jnp.all(jnp.isfinite(params), axis=1, keepdims=True), params, p0)
+    n_valid = 3 * jdata["use"].sum(1)
+    cov = covariance(residual, params, lm_data, n_valid)
+    params, cov = np.asarray(params), np.asarray(cov)
+    timings["polish"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    var = np.diagonal(cov, axis1=1, axis2=2)
+    sd_log = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
+    observed_any = data["use"].any(1)
+    # The paper needs two T_spec samples; the full-model fit can also pin the lobe down
+    # from T_none samples, so identifiability is judged on the fit's own uncertainty.
+    enough = np.asarray(n_spec) >= 2 if options.paper else data["use"].sum(1) >= 3
+    identifiable = enough & np.asarray(spec_ok) & np.all(np.isfinite(params), 1) \
+        & (sd_log[:, 3] < 1.0 / options.min_snr) & (sd_log[:, 4] < 1.0)
+
+    pd = np.exp(params[:, :3])
+    ps, rough = np.exp(params[:, 3]), np.exp(params[:, 4])
+    # Delta method from the log parameters; an unknown (inf) log-std stays inf.
+    scaled = np.where(np.isinf(sd_log), np.inf, np.exp(params) * np.where(np.isinf(sd_log), 0.0, sd_log))
+    std_pd, std_ps, std_rough = scaled[:, :3], scaled[:, 3], scaled[:, 4]
+    status = np.full(scan.n_points, MEASURED, np.int8)
+
+    adjacency = vertex_adjacency(scan.faces, scan.n_points)
+    need_spec = ~identifiable
+    if identifiable.any():
+        filled = window_fill(np.c_[params[:, 3], params[:, 4]], identifiable, adjacency, options.window)
+        ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
+        status[filled.window] = INTERPOLATED
+        status[filled.diffused] = UNRESOLVED
+    else:  # nothing identifiable anywhere: no specular evidence, report none
+        ps[:], rough[:] = 0.0, np.exp(np.asarray(ln_rough0))
+        status[:] = UNRESOLVED
+    std_ps[need_spec] = np.inf
+    std_rough[need_spec] = np.inf
+
+    # pd of points whose specular part came from elsewhere, with that part fixed.
+    refit = need_spec & observed_any
+    if refit.any():
+        pd_fix, std_fix = _refit_diffuse(options.model, jdata, jnp.log(jnp.maximum(ps, 1e-300)),
+                                         jnp.log(rough), w)
+        pd[refit], std_pd[refit] = np.asarray(pd_fix)[refit], np.asarray(std_fix)[refit]
+    if (~observed_any).any():
+        if observed_any.any():
+            filled = window_fill(pd, observed_any, adjacency, options.window)
+            pd[~observed_any] = filled.values[~observed_any]
+            status[~observed_any & filled.window] = np.maximum(status[~observed_any & filled.window],
+                                                               INTERPOLATED)
+            status[~observed_any & filled.diffused] = UNRESOLVED
+        else:
+            status[:] = UNRESOLVED
+        std_pd[~observed_any] = np.inf
+    timings["fill"] = time.perf_counter() - t0
+
+    # Nothing non-finite leaves: std may be inf (unknown), values never NaN.
+    for a in (pd, ps, rough):
+        np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    for a in (std_pd, std_ps, std_rough):
+        np.nan_to_num(a, copy=False, nan=np.inf)
+    meta = {"method": "local", "model": options.model,
+            "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v)
+                        for k, v in asdict(options).items()},
+            "quantisation_step": q, "seconds": timings,
+            "points_with_observations": int(observed_any.sum()),
+            "points_with_diffuse_only_sample": int(np.asarray(has_diff).sum())}
+    return Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, options.model, meta)
