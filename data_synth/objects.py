@@ -20,7 +20,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from skimage.measure import marching_cubes
 
-OBJECT_NAMES = ("A", "B", "C", "D", "E")
+OBJECT_NAMES = ("A", "B", "C", "D", "E")  # analogues of the paper's objects
+#: Beyond the paper: V, a convex glazed vase (no interreflection, no cast shadow) for
+#: checking local estimation where the local model is exact.
+EXTRA_NAMES = ("V",)
 SETUPS = ("diffuse", "glossy")
 
 _SQRT_HALF = float(np.sqrt(0.5))
@@ -72,8 +75,8 @@ def make_object(name: str, resolution: int = 64, setup: str = "glossy") -> Synth
     resolution: voxels along the object's largest extent (A–D); for E each plate is a
     (resolution//2 + 1)^2 vertex grid. setup: 'diffuse' or 'glossy', used by E only.
     """
-    if name not in OBJECT_NAMES:
-        raise ValueError(f"name must be one of {OBJECT_NAMES}, got {name!r}")
+    if name not in OBJECT_NAMES + EXTRA_NAMES:
+        raise ValueError(f"name must be one of {OBJECT_NAMES + EXTRA_NAMES}, got {name!r}")
     if setup not in SETUPS:
         raise ValueError(f"setup must be one of {SETUPS}, got {setup!r}")
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)):
@@ -577,7 +580,28 @@ def _reflect_d(v, part, names):
     return pd, np.full(n, 0.25), np.full(n, 0.12)
 
 
-_SPECS = {"A": _spec_a, "B": _spec_b, "C": _spec_c, "D": _spec_d}
+def _spec_v():
+    prims = [_ellipsoid("body", (0, 0.10, 0), (0.065, 0.10, 0.065), 0.0)]
+    return prims, _reflect_v, ("body",), (
+        "Convex glazed egg-shaped vase: painted diffuse bands and spots, a glossy glaze band "
+        "with a sharp highlight, a satin glaze elsewhere."
+    )
+
+
+def _reflect_v(v, part, names):
+    x, y, z = v.T
+    n = len(v)
+    band = _smoothstep(-0.004, 0.004, 0.025 - np.abs(y - 0.10))  # glossy band around the middle
+    phase = np.arctan2(x, z)
+    pd = _mix(_uniform(n, (0.70, 0.62, 0.45)), (0.15, 0.25, 0.55),
+              _smoothstep(0.3, 0.7, 0.5 + 0.5 * np.sin(3 * phase + 40 * y)))
+    pd = _mix(pd, (0.75, 0.20, 0.15), _spots(v, [(0.05, 0.16, 0.04), (-0.05, 0.05, -0.03)], 0.012))
+    ps = 0.12 + 0.38 * band
+    rough = 0.18 - 0.12 * band  # 0.06 rad in the glossy band, 0.18 elsewhere
+    return pd, ps, rough
+
+
+_SPECS = {"A": _spec_a, "B": _spec_b, "C": _spec_c, "D": _spec_d, "V": _spec_v}
 
 
 # ---------------------------------------------------------------------------------------

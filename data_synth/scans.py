@@ -20,7 +20,7 @@ from jaxrefl.io import Scan, validate_scan
 from jaxrefl.raycast import RayCaster
 from jaxrefl.rig import CylindricalScanner, PinholeCamera, paper_light_rack
 
-from .objects import OBJECT_NAMES, make_object
+from .objects import EXTRA_NAMES, OBJECT_NAMES, make_object
 from .pathtrace import Material, PathTracer
 
 __all__ = ["Sensor", "apply_sensor", "make_rig", "make_scan"]
@@ -135,8 +135,8 @@ def make_scan(
     **Returns:** `(scan, report)`; `report` holds timings and the Monte Carlo
     standard error of the global-illumination render.
     """
-    if name not in OBJECT_NAMES:
-        raise ValueError(f"object must be one of {OBJECT_NAMES}, got {name!r}")
+    if name not in OBJECT_NAMES + EXTRA_NAMES:
+        raise ValueError(f"object must be one of {OBJECT_NAMES + EXTRA_NAMES}, got {name!r}")
     if model not in ("torrance-sparrow", "ward"):
         raise ValueError(f"model must be 'torrance-sparrow' or 'ward', got {model!r}")
     if not intensity > 0:

@@ -48,7 +48,9 @@ class Thresholds:
 class Measurability(NamedTuple):
     """Per-(point, light) results, each `(N, K)`: `measurable`, `diffuse_only`,
     `strong_specular` (bool), `classes` (int8, see module docstring),
-    `theta_r` [rad], and `seen` `(N,)` bool: the camera sees the point at all."""
+    `theta_r` [rad], `seen` `(N,)` bool: the camera sees the point at all, and
+    `pixel_weight` `(N,)`: the point's share of the image, its vertex area [m^2]
+    times the cosine to the camera (how the paper's pixel counts weigh it)."""
 
     measurable: np.ndarray
     diffuse_only: np.ndarray
@@ -56,6 +58,7 @@ class Measurability(NamedTuple):
     classes: np.ndarray
     theta_r: np.ndarray
     seen: np.ndarray
+    pixel_weight: np.ndarray
 
 
 @jax.jit
@@ -101,8 +104,12 @@ def classify(points, normals, cam_pos, light_pos, caster: RayCaster,
 
     diffuse, specular, classes = _classes(measurable, theta_r, np.radians(thresholds.diffuse_deg),
                                           np.radians(thresholds.specular_deg))
+    tri = caster.vertices[caster.faces]
+    face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    vertex_area = np.bincount(caster.faces.ravel(), np.repeat(face_area / 3.0, 3), minlength=n)
+    pixel_weight = vertex_area * np.max(np.where(cam_visible, np.maximum(cos_o, 0.0), 0.0), axis=1)
     return Measurability(measurable, np.asarray(diffuse), np.asarray(specular), np.asarray(classes),
-                         theta_r, seen)
+                         theta_r, seen, pixel_weight)
 
 
 def classify_scan(scan, thresholds: Thresholds = Thresholds(), caster: RayCaster | None = None,

@@ -33,7 +33,8 @@ def _int_list(text: str):
 
 def _add_synth(sub):
     p = sub.add_parser("synth", help="render a synthetic scan bundle with known reflectance")
-    p.add_argument("object", choices=["A", "B", "C", "D", "E"], help="procedural object")
+    p.add_argument("object", choices=["A", "B", "C", "D", "E", "V"],
+                   help="procedural object (A-E: the paper's analogues; V: a convex glazed vase)")
     p.add_argument("--out", required=True, help="scan bundle to write (.npz)")
     p.add_argument("--resolution", type=int, default=64, help="mesh resolution (voxels across the object)")
     p.add_argument("--setup", choices=["diffuse", "glossy"], default="glossy", help="Object E set-up")
@@ -89,6 +90,8 @@ def _add_select_lights(sub):
     p.add_argument("--exact", action="store_true", help="also solve the covering problem exactly (MILP)")
     p.add_argument("--ignore-images", action="store_true",
                    help="plan from geometry alone even if the bundle holds radiance")
+    p.add_argument("--weighting", choices=["pixels", "points"], default="pixels",
+                   help="count image pixels (area x cosine to the camera, as the paper) or points")
 
 
 def _add_table1(sub):
@@ -175,12 +178,15 @@ def cmd_select_lights(args) -> int:
     scan = load_scan(args.scan)
     thresholds = Thresholds(diffuse_deg=args.diffuse_deg, specular_deg=args.specular_deg)
     m = classify_scan(scan, thresholds, use_observations=not args.ignore_images)
+    weights = m.pixel_weight if args.weighting == "pixels" else None
     sel = select_lights(m.diffuse_only, m.strong_specular, m.seen, th1=args.th1, target=args.target,
-                        min_gain=args.min_gain, marginal=not args.paper)
+                        min_gain=args.min_gain, marginal=not args.paper, weights=weights)
     result = sel.to_json()
+    result["weighting"] = args.weighting
     result["thresholds_deg"] = {"diffuse": args.diffuse_deg, "specular": args.specular_deg}
     if args.exact:
-        result["exact"] = exact_minimum(m.diffuse_only, m.strong_specular, m.seen, target=args.target)
+        result["exact"] = exact_minimum(m.diffuse_only, m.strong_specular, m.seen, target=args.target,
+                                        weights=weights)
     if args.plot:
         plot_coverage(sel, args.plot)
     if args.json:

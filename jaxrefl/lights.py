@@ -48,24 +48,35 @@ class Selection:
         return asdict(self)
 
 
-def coverage(diffuse_only, strong_specular, lights, seen=None) -> tuple[float, float]:
-    """(diffuse, specular) coverage of the seen points with the light subset `lights`."""
+def _point_weights(n, seen, weights):
+    seen = np.ones(n, bool) if seen is None else np.asarray(seen, bool)
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ValueError(f"weights must be (N,) finite and >= 0, got shape {w.shape}")
+    w = np.where(seen, w, 0.0)
+    return w, max(float(w.sum()), 1e-300), seen
+
+
+def coverage(diffuse_only, strong_specular, lights, seen=None, weights=None) -> tuple[float, float]:
+    """(diffuse, specular) coverage of the seen points with the light subset `lights`
+    (weighted fractions when `weights` `(N,)` is given, e.g. `pixel_weight`)."""
     lights = np.asarray(lights, dtype=np.int64)
     d, s = np.asarray(diffuse_only)[:, lights], np.asarray(strong_specular)[:, lights]
-    seen = np.ones(len(d), bool) if seen is None else np.asarray(seen, bool)
-    n = max(int(seen.sum()), 1)
-    return float(np.sum((d.sum(1) >= 1) & seen) / n), float(np.sum((s.sum(1) >= 2) & seen) / n)
+    w, total, _ = _point_weights(len(d), seen, weights)
+    return float(w[d.sum(1) >= 1].sum() / total), float(w[s.sum(1) >= 2].sum() / total)
 
 
 def select_lights(diffuse_only, strong_specular, seen=None, th1: float = 0.8, target: float = 0.99,
-                  min_gain: float = 0.0, marginal: bool = True, max_lights: int | None = None) -> Selection:
+                  min_gain: float = 0.0, marginal: bool = True, max_lights: int | None = None,
+                  weights=None) -> Selection:
     """Greedy light selection.
 
     **Arguments:** `diffuse_only`, `strong_specular` `(N, K)` bool (from
     `classify`); `seen` `(N,)` bool, the points that count (default all);
     `th1`, `target`, `min_gain` as in the module docstring; `marginal` count
     only newly covered points (default) or, as the paper, all points;
-    `max_lights` cap (default K).
+    `max_lights` cap (default K); `weights` `(N,)` what each point counts for
+    (default 1; `Measurability.pixel_weight` counts image pixels as the paper).
 
     **Returns:** `Selection`.
     """
@@ -74,12 +85,11 @@ def select_lights(diffuse_only, strong_specular, seen=None, th1: float = 0.8, ta
     if d.shape != s.shape or d.ndim != 2:
         raise ValueError(f"diffuse_only {d.shape} and strong_specular {s.shape} must both be (N, K)")
     n, k = d.shape
-    seen = np.ones(n, bool) if seen is None else np.asarray(seen, bool)
+    w, total, seen = _point_weights(n, seen, weights)
     d, s = d & seen[:, None], s & seen[:, None]
-    n_seen = max(int(seen.sum()), 1)
     d_int, s_int = d.astype(np.int32), s.astype(np.int32)
-    limit_d = float(np.sum(d.any(1)) / n_seen)
-    limit_s = float(np.sum(s.sum(1) >= 2) / n_seen)
+    limit_d = float(w[d.any(1)].sum() / total)
+    limit_s = float(w[s.sum(1) >= 2].sum() / total)
     max_lights = k if max_lights is None else min(max_lights, k)
 
     d_count = np.zeros(n, np.int32)
@@ -89,14 +99,13 @@ def select_lights(diffuse_only, strong_specular, seen=None, th1: float = 0.8, ta
     diffuse_done_at = 0 if limit_d == 0 else None
 
     def cover():
-        return float(np.sum(d_count >= 1) / n_seen), float(np.sum(s_count >= 2) / n_seen)
+        return float(w[d_count >= 1].sum() / total), float(w[s_count >= 2].sum() / total)
 
     def pick(counts, matrix, need):
-        weights = (counts < need).astype(np.int32) if marginal else np.ones(n, np.int32)
-        gain = weights @ matrix
-        gain[chosen] = -1
+        gain = (w * (counts < need) if marginal else w) @ matrix
+        gain[chosen] = -1.0
         best = int(np.argmax(gain))
-        return best, int(gain[best])
+        return best, float(gain[best])
 
     def take(light, criterion):
         nonlocal diffuse_done_at
@@ -110,7 +119,7 @@ def select_lights(diffuse_only, strong_specular, seen=None, th1: float = 0.8, ta
         if diffuse_done_at is None and cd >= limit_d:
             diffuse_done_at = len(selected)
 
-    rising = max(min_gain * n_seen, 1.0)  # a light must add this many points to count as rising
+    rising = max(min_gain * total, 1e-12 * total)  # what a light must add to count as rising
     while len(selected) < max_lights:
         cd, cs = cover()
         diffuse_left = cd < limit_d
@@ -145,10 +154,10 @@ def select_lights(diffuse_only, strong_specular, seen=None, th1: float = 0.8, ta
 
 
 def exact_minimum(diffuse_only, strong_specular, seen=None, target: float = 1.0,
-                  time_limit: float = 60.0) -> dict:
+                  time_limit: float = 60.0, weights=None) -> dict:
     """Fewest lights giving every coverable seen point one diffuse-only and two
-    strong-specular samples (with `target < 1`: at least that fraction of the
-    specular limit, one binary per point), as an integer program.
+    strong-specular samples (with `target < 1`: at least that (weighted) fraction
+    of the specular limit, one binary per point), as an integer program.
 
     **Returns:** dict with `count`, `selected`, `status` ('optimal' or the
     solver's message) and `seconds`.
@@ -161,7 +170,8 @@ def exact_minimum(diffuse_only, strong_specular, seen=None, target: float = 1.0,
     d = np.asarray(diffuse_only, dtype=bool)
     s = np.asarray(strong_specular, dtype=bool)
     n, k = d.shape
-    seen = np.ones(n, bool) if seen is None else np.asarray(seen, bool)
+    w, _, seen = _point_weights(n, seen, weights)
+    seen = seen & (w > 0)
     need_d = seen & d.any(1)
     can_s = seen & (s.sum(1) >= 2)
     rows_d = csr_matrix(d[need_d].astype(float))
@@ -175,13 +185,14 @@ def exact_minimum(diffuse_only, strong_specular, seen=None, target: float = 1.0,
         integrality = np.ones(k)
         bounds = Bounds(0, 1)
     else:
-        # y_i = 1 where point i must be specular-covered; sum y >= target * limit.
+        # y_i = 1 where point i must be specular-covered; sum w y >= target * (limit weight).
         m = rows_s.shape[0]
+        ws = w[can_s] / w[can_s].sum()
         a_s = hstack([rows_s, diags(np.full(m, -2.0))])
         a_d = hstack([rows_d, csr_matrix((rows_d.shape[0], m))])
-        a_y = hstack([csr_matrix((1, k)), csr_matrix(np.ones((1, m)))])
+        a_y = hstack([csr_matrix((1, k)), csr_matrix(ws[None, :])])
         constraints = [LinearConstraint(vstack([a_d, a_s, a_y]),
-                                        np.r_[np.ones(rows_d.shape[0]), np.zeros(m), np.ceil(target * m)],
+                                        np.r_[np.ones(rows_d.shape[0]), np.zeros(m), target - 1e-9],
                                         np.inf)]
         cost = np.r_[np.ones(k), np.zeros(m)]
         integrality = np.ones(k + m)

@@ -86,3 +86,21 @@ def test_unseen_points_do_not_count():
 def test_shape_mismatch_is_refused():
     with pytest.raises(ValueError, match="strong_specular"):
         select_lights(np.zeros((3, 2), bool), np.zeros((3, 3), bool))
+
+
+def test_weights_count_image_share_not_points():
+    """With weights, a light covering few heavy points beats one covering many light ones."""
+    d = np.zeros((4, 3), bool)
+    s = np.zeros((4, 3), bool)
+    d[:3, 0] = True  # three points of weight 1
+    d[3, 1] = True  # one point of weight 10
+    d[:, 2] = False
+    s[:, :] = True
+    w = np.array([1.0, 1.0, 1.0, 10.0])
+    sel = select_lights(d, s, weights=w, target=1.0)
+    assert sel.curve[0]["light"] == 1 and sel.curve[0]["diffuse_coverage"] == pytest.approx(10 / 13)
+    assert coverage(d, s, [0], weights=w)[0] == pytest.approx(3 / 13)
+    exact = exact_minimum(d, s, weights=w, target=0.5)
+    assert exact["count"] >= 2  # diffuse needs both 0 and 1, specular any two
+    with pytest.raises(ValueError, match="weights"):
+        select_lights(d, s, weights=-w)
