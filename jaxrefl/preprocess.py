@@ -15,9 +15,13 @@ among windows of a smooth surface is decided by noise alone, and a window whose
 corner holds the pixel estimates the slope there with several times the variance
 of the centred window. The default, `select="variance"`, keeps the same rule but
 ranks windows by the estimated variance of the fitted slope *at the pixel*,
-`sigma_hat^2 * g^T (A^T A)^{-1} g`: a window straddling a discontinuity has a
-huge `sigma_hat^2` and loses as before, while on smooth ground the centred window
-wins. Both are measured in `benchmarks/normals_report.py`.
+`max(sigma_hat^2, floor) * g^T (A^T A)^{-1} g`, where `floor` is twice the median
+`sigma_hat^2` of all fits (below it a residual is noise, and the estimate of
+`sigma_hat^2` from ~20 residuals is itself uncertain by ~30 %): a window
+straddling a discontinuity has a huge `sigma_hat^2` and loses as before, while on
+smooth ground the centred window wins. Both rules are measured in
+`benchmarks/normals_report.py` (on Object A the literal rule triples the median
+normal error).
 """
 
 from __future__ import annotations
@@ -41,6 +45,9 @@ _NPARAM = 6  # 1, u, v, u^2, uv, v^2
 _COND_MIN = 1e-10  # smallest accepted eigenvalue ratio of a normal matrix
 _BIG = 1e300  # ranking key of a fit with no degrees of freedom left (exact fit)
 _SELECT = ("variance", "residual")
+# Residual variances below this multiple of the median over all fits count as noise:
+# about the 99th percentile of sigma_hat^2 / sigma^2 for ~20 degrees of freedom.
+_FLOOR_FACTOR = 2.0
 
 
 # -- range images ------------------------------------------------------------------
@@ -68,7 +75,8 @@ class RangeImage:
             raise ValueError(f"RangeImage.r: must be a 2-D (H, W) array, got shape {r.shape}")
         h, w = r.shape
         if theta.shape != (w,):
-            raise ValueError(f"RangeImage.theta: must have shape ({w},) to match r, got {theta.shape}")
+            raise ValueError(f"RangeImage.theta: must have shape ({w},) to match r, "
+                             f"got {theta.shape}")
         if y.shape != (h,):
             raise ValueError(f"RangeImage.y: must have shape ({h},) to match r, got {y.shape}")
         if np.isinf(r).any():
@@ -80,7 +88,8 @@ class RangeImage:
         if w > 1 and not np.all(np.diff(theta) > 0):
             raise ValueError("RangeImage.theta: must be strictly increasing")
         if theta[-1] - theta[0] >= 2 * np.pi:
-            raise ValueError(f"RangeImage.theta: must span less than 2 pi, spans {theta[-1] - theta[0]}")
+            raise ValueError("RangeImage.theta: must span less than 2 pi, "
+                             f"spans {theta[-1] - theta[0]}")
         if not np.isfinite(y).all():
             raise ValueError("RangeImage.y: must be finite")
         if h > 1 and not np.all(np.diff(y) < 0):
@@ -145,8 +154,12 @@ def _check_image(img) -> RangeImage:
     return img
 
 
+def _is_int(x, lo: int) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, np.integer)) and x >= lo
+
+
 def _check_window(window) -> int:
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
+    if not _is_int(window, 3) or window % 2 == 0:
         raise ValueError(f"window: must be an odd integer >= 3, got {window!r}")
     return int(window)
 
@@ -225,16 +238,18 @@ def remove_outliers(img: RangeImage, window: int = 5, k: float = 4.0,
                     min_scale: float = 5e-5) -> tuple[RangeImage, np.ndarray]:
     """Remove isolated spikes from a range image.
 
-    A return is an outlier when it deviates from the median of *every* `window x
-    window` window that contains it by more than `k` robust scales (the same
-    adaptive idea as the fits: a pixel at a depth edge or a corner agrees with the
-    windows on its own side, a spike with none). The scale of a window is
-    `1.4826 x` the median absolute residual `|r - median|` of its pixels (each
-    against its own centred median, so slopes do not inflate it), floored at
-    `min_scale` [m] (about the quantisation step; it keeps noise-free or heavily
-    quantised data from being flagged). Windows with fewer than
-    `max(3, window**2 // 4)` returns are not used; a return with no usable window
-    is unsupported and removed too.
+    A return is an outlier when it disagrees by more than `k` robust scales with
+    *every* `window x window` window that contains it (the adaptive idea of the
+    fits: a pixel at a depth edge or a corner agrees with the windows on its own
+    side, a spike with none). A window's reference is a robust plane: its slopes
+    along theta and y are the medians of the window's neighbour differences, its
+    level the median of the detrended samples (a plain median lets spikes hide
+    among a steep slope's own values at grazing incidence). A window's scale is
+    `1.4826 x` the median of `|r - level|` over its pixels, each against the
+    plane of its own centred window, floored at `min_scale` [m] (about the
+    quantisation step; it keeps noise-free or heavily quantised data from being
+    flagged). Windows with fewer than `max(3, window**2 // 4)` returns are not
+    used; a return with no usable window is unsupported and removed too.
 
     **Arguments:** `img` RangeImage; `window` odd >= 3; `k` > 0; `min_scale` [m] > 0.
 
@@ -245,23 +260,56 @@ def remove_outliers(img: RangeImage, window: int = 5, k: float = 4.0,
     window = _check_window(window)
     k = _check_positive("k", k)
     min_scale = _check_positive("min_scale", min_scale)
-    h, wrap, shape = window // 2, img.full_circle, img.shape
-    r = img.r
-    med, n = _nanmedian_last(_windows(r, h, wrap))
-    resid = r - med
-    scale, _ = _nanmedian_last(np.abs(_windows(resid, h, wrap)))
+    zmin = _median_z(img, window // 2, img.full_circle, min_scale)
+    removed = img.valid & ~(zmin <= k)
+    return img.with_r(np.where(removed, np.nan, img.r)), removed
+
+
+def _offset_coordinates(img: RangeImage, h: int, wrap: bool):
+    """Grid-unit coordinates of the samples at each offset from a window centre:
+    `S[dj]` `(W,)` = `(theta[j + dj] - theta[j]) / dtheta` (unwrapped across the
+    seam) and `T[di]` `(H,)` = `(y[i + di] - y[i]) / dy`, for `|d| <= h`."""
+    theta_ext, y_ext = _extended_axes(img, h, wrap)
+    H, W = img.shape
+    S = {dj: (theta_ext[h + dj: h + dj + W] - img.theta) / img.dtheta for dj in range(-h, h + 1)}
+    T = {di: (y_ext[h + di: h + di + H] - img.y) / img.dy for di in range(-h, h + 1)}
+    return S, T
+
+
+def _median_z(img: RangeImage, h: int, wrap: bool, min_scale: float) -> np.ndarray:
+    """`(H, W)` smallest |r - window plane| / window scale over the windows
+    holding each pixel (inf where none is usable).
+
+    The window plane is robust: slopes are the medians of the window's
+    neighbour differences along theta and y, its level the median of the
+    detrended samples (on steep, grazing ground a plain median lets spikes hide
+    among the slope's own values)."""
+    shape, r = img.shape, img.r
+    S, T = _offset_coordinates(img, max(h, 1), wrap)
+    rp = _pad(r, max(h, 1), wrap, np.nan)
+    ds = (_shift(rp, max(h, 1), 0, 1, shape) - r) / S[1][None, :]
+    dt = (_shift(rp, max(h, 1), 1, 0, shape) - r) / T[1][:, None]
+    slope_s, _ = _nanmedian_last(_windows(ds, h, wrap))
+    slope_t, _ = _nanmedian_last(_windows(dt, h, wrap))
+    slope_s, slope_t = np.nan_to_num(slope_s), np.nan_to_num(slope_t)
+    rp = _pad(r, h, wrap, np.nan)
+    offs = _offsets(h)
+    detrended = np.stack([_shift(rp, h, di, dj, shape)
+                          - slope_s * S[dj][None, :] - slope_t * T[di][:, None]
+                          for di, dj in offs], axis=-1)
+    level, n = _nanmedian_last(detrended)
+    scale, _ = _nanmedian_last(np.abs(_windows(r - level, h, wrap)))
     scale = np.maximum(_MAD * np.nan_to_num(scale, nan=0.0), min_scale)
-    support = n >= max(3, window * window // 4)
-    med_p = _pad(np.where(support, med, np.nan), h, wrap, np.nan)
-    scale_p = _pad(scale, h, wrap, 1.0)
+    support = n >= max(3, (2 * h + 1) ** 2 // 4)
+    level = np.where(support, level, np.nan)
     zmin = np.full(shape, np.inf)
     with np.errstate(invalid="ignore"):
-        for di, dj in _offsets(h):
-            # Window centred at (i - di, j - dj) contains pixel (i, j).
-            z = np.abs(r - _shift(med_p, h, -di, -dj, shape)) / _shift(scale_p, h, -di, -dj, shape)
-            zmin = np.fmin(zmin, z)
-    removed = img.valid & ~(zmin <= k)
-    return img.with_r(np.where(removed, np.nan, r)), removed
+        for di, dj in offs:
+            # The window centred at (i - di, j - dj) holds pixel (i, j); its plane there:
+            pred = level + slope_s * S[dj][None, :] + slope_t * T[di][:, None]
+            z = np.abs(r - _shift(_pad(pred, h, wrap, np.nan), h, -di, -dj, shape))
+            zmin = np.fmin(zmin, z / _shift(_pad(scale, h, wrap, 1.0), h, -di, -dj, shape))
+    return zmin
 
 
 # -- quadratic fits on the grid ------------------------------------------------------
@@ -283,9 +331,17 @@ _VAR_IDX = ((1, 1), (3, 3), (4, 4), (1, 3), (1, 4), (3, 4),
 def _assemble(mom: dict, rmom: dict):
     """Normal matrix `(..., 6, 6)` and right-hand side `(..., 6)` from the moments
     `mom[(p, q)] = sum w s^p t^q` and `rmom[(p, q)] = sum w z s^p t^q`."""
-    M = np.stack([np.stack([mom[(pa + pb, qa + qb)] for pb, qb in _EXP], -1) for pa, qa in _EXP], -2)
+    M = np.stack([np.stack([mom[(pa + pb, qa + qb)] for pb, qb in _EXP], -1)
+                  for pa, qa in _EXP], -2)
     b = np.stack([rmom[e] for e in _EXP], -1)
     return M, b
+
+
+def _noise_floor(sigma2: np.ndarray) -> float:
+    """`_FLOOR_FACTOR x` the median residual variance of all usable fits: the
+    variance below which fits are taken as equally good (noise alone)."""
+    s = sigma2[np.isfinite(sigma2)]
+    return _FLOOR_FACTOR * float(np.median(s)) if len(s) else 0.0
 
 
 def _evaluate(c, s, t):
@@ -324,37 +380,45 @@ def _grid_fits(img: RangeImage, h: int, wrap: bool, min_samples: int):
     `u = r0 (theta - theta_c)`, `v = y - y_c`, so the fitted surface is the same
     and the normal matrices are well scaled.
 
-    **Returns:** `coef` `(H, W, 6)`, `Minv` `(H, W, 6, 6)`, `sigma2` `(H, W)`
-    unbiased residual variance [m^2] (inf where the fit is exact), `ok` `(H, W)`
-    bool, `S` `{dj: (W,)}`, `T` `{di: (H,)}` sample coordinates per offset.
+    **Returns:** `fields` dict of `(H, W)` arrays: `c0..c5` coefficients, the
+    inverse normal matrix entries `_VAR_IDX`, `sigma2` unbiased residual
+    variance [m^2] (inf for an exact fit, NaN where no usable fit).
     """
     shape = img.shape
-    theta_ext, y_ext = _extended_axes(img, h, wrap)
-    W, H = shape[1], shape[0]
-    S = {dj: (theta_ext[h + dj: h + dj + W] - img.theta) / img.dtheta for dj in range(-h, h + 1)}
-    T = {di: (y_ext[h + di: h + di + H] - img.y) / img.dy for di in range(-h, h + 1)}
+    H, W = shape
+    S, T = _offset_coordinates(img, h, wrap)
     rp = _pad(img.r, h, wrap, np.nan)
-    M = np.zeros(shape + (_NPARAM, _NPARAM))
-    b = np.zeros(shape + (_NPARAM,))
+    mom = {e: np.zeros(shape) for e in _MOM}
+    rmom = {e: np.zeros(shape) for e in _EXP}
     n = np.zeros(shape, dtype=np.int64)
     for di, dj in _offsets(h):
         rv = _shift(rp, h, di, dj, shape)
         m = np.isfinite(rv)
-        phi = _basis(S[dj][None, :], T[di][:, None]) * m[..., None]
-        M += phi[..., :, None] * phi[..., None, :]
-        b += phi * np.where(m, rv, 0.0)[..., None]
+        mf = m.astype(np.float64)
+        rz = np.where(m, rv, 0.0)
+        sp = [np.ones(W), S[dj], S[dj] ** 2, S[dj] ** 3, S[dj] ** 4]
+        tq = [np.ones(H), T[di], T[di] ** 2, T[di] ** 3, T[di] ** 4]
+        for p, q in _MOM:
+            mom[(p, q)] += mf * np.outer(tq[q], sp[p])
+        for p, q in _EXP:
+            rmom[(p, q)] += rz * np.outer(tq[q], sp[p])
         n += m
+    M, b = _assemble(mom, rmom)
     Minv, ok = _solve_batched(M, n >= min_samples)
     coef = np.einsum("...ij,...j->...i", Minv, b)
+    c = [np.ascontiguousarray(coef[..., i]) for i in range(_NPARAM)]
     ssr = np.zeros(shape)
     for di, dj in _offsets(h):
         rv = _shift(rp, h, di, dj, shape)
         m = np.isfinite(rv)
-        fit = np.einsum("...i,...i->...", _basis(S[dj][None, :], T[di][:, None]), coef)
-        ssr += np.where(m, (np.where(m, rv, 0.0) - fit) ** 2, 0.0)
+        fit, _, _ = _evaluate(c, S[dj][None, :], T[di][:, None])
+        ssr += np.where(m, np.where(m, rv, 0.0) - fit, 0.0) ** 2
     dof = n - _NPARAM
     sigma2 = np.where(dof > 0, ssr / np.maximum(dof, 1), np.inf)
-    return coef, Minv, sigma2, ok, S, T
+    fields = {f"c{i}": c[i] for i in range(_NPARAM)}
+    fields.update({ij: np.ascontiguousarray(Minv[..., ij[0], ij[1]]) for ij in _VAR_IDX})
+    fields["sigma2"] = np.where(ok, sigma2, np.nan)
+    return fields
 
 
 def quadratic_fit(img: RangeImage, window: int = 5, adaptive: bool = True,
@@ -385,62 +449,52 @@ def quadratic_fit(img: RangeImage, window: int = 5, adaptive: bool = True,
     """
     img = _check_image(img)
     window = _check_window(window)
-    if isinstance(min_samples, bool) or not isinstance(min_samples, (int, np.integer)) or min_samples < 6:
+    if not _is_int(min_samples, 6):
         raise ValueError(f"min_samples: must be an integer >= 6, got {min_samples!r}")
     if select not in _SELECT:
         raise ValueError(f"select: must be one of {_SELECT}, got {select!r}")
     h, wrap, shape = window // 2, img.full_circle, img.shape
-    coef, Minv, sigma2, ok, S, T = _grid_fits(img, h, wrap, int(min_samples))
+    H, W = shape
+    fields = _grid_fits(img, h, wrap, int(min_samples))
+    padded = {key: _pad(val, h, wrap, np.nan) for key, val in fields.items()}
+    theta_ext, y_ext = _extended_axes(img, h, wrap)
 
-    best_key = np.full(shape, np.inf)
-    best = np.full(shape + (5,), np.nan)  # r, r_s, r_t, sigma2, unused
     r_pix = img.r
     arc = np.where(np.isfinite(r_pix) & (r_pix > 0), r_pix, 1.0) * img.dtheta  # metres per column
-    shifts = _offsets(h) if adaptive else [(0, 0)]
-    for a, bj in shifts:
-        # Evaluate every window centre c at the pixel c + (a, bj) ...
-        s = S[bj][None, :]
-        t = T[a][:, None]
-        phi = _basis(s, t)
-        gs = np.zeros(phi.shape)
-        gs[..., 1], gs[..., 3], gs[..., 4] = 1.0, 2 * s, t
-        gt = np.zeros(phi.shape)
-        gt[..., 2], gt[..., 4], gt[..., 5] = 1.0, s, 2 * t
-        fields = np.stack([
-            np.einsum("...i,...i->...", phi, coef),
-            np.einsum("...i,...i->...", gs, coef),
-            np.einsum("...i,...i->...", gt, coef),
-            np.einsum("...i,...ij,...j->...", gs, Minv, gs),
-            np.einsum("...i,...ij,...j->...", gt, Minv, gt),
-            np.where(ok, sigma2, np.nan),
-        ], axis=-1)
-        # ... then move the values onto the pixel grid: pixel (i, j) <- centre (i - a, j - bj).
-        f = _shift(_pad(fields, h, wrap, np.nan), h, -a, -bj, shape)
-        var_s = f[..., 3] / arc**2
-        var_t = f[..., 4] / img.dy**2
-        sig2 = f[..., 5]
+    floor = _noise_floor(fields["sigma2"])
+    best_key = np.full(shape, np.inf)
+    best = [np.full(shape, np.nan) for _ in range(4)]  # r, r_s, r_t, sigma2
+    for a, bj in (_offsets(h) if adaptive else [(0, 0)]):
+        # The window centred at (i - a, j - bj) holds pixel (i, j) at local (s, t).
+        f = {key: _shift(val, h, -a, -bj, shape) for key, val in padded.items()}
+        s = ((img.theta - theta_ext[h - bj: h - bj + W]) / img.dtheta)[None, :]
+        t = ((img.y - y_ext[h - a: h - a + H]) / img.dy)[:, None]
+        c = [f[f"c{i}"] for i in range(_NPARAM)]
+        val, ds, dt = _evaluate(c, s, t)
+        sig2 = f["sigma2"]
         if select == "variance":
-            key = np.where(np.isinf(sig2), _BIG, sig2 * (var_s + var_t))
+            vs, vt = _slope_variances(f, s, t)
+            key = np.maximum(sig2, floor) * (vs / arc**2 + vt / img.dy**2)
         else:
-            key = np.where(np.isinf(sig2), _BIG, sig2)
-        key = np.where(np.isfinite(sig2) | np.isinf(sig2), key, np.inf)  # NaN: no fit
+            key = sig2.copy()
+        key = np.where(np.isinf(sig2), _BIG, key)
+        key = np.where(np.isnan(key), np.inf, key)  # no usable fit
         better = key < best_key
         best_key = np.where(better, key, best_key)
-        best = np.where(better[..., None], np.stack([f[..., 0], f[..., 1], f[..., 2], sig2, sig2], -1), best)
+        for dst, src in zip(best, (val, ds, dt, sig2)):
+            dst[better] = src[better]
 
-    r_fit = best[..., 0]
-    r_th = best[..., 1] / img.dtheta
-    r_y = best[..., 2] / img.dy
+    r_fit, r_th, r_y, sig2 = best[0], best[1] / img.dtheta, best[2] / img.dy, best[3]
     sn, cs = np.sin(img.theta)[None, :], np.cos(img.theta)[None, :]
     nrm = np.stack([r_fit * sn - r_th * cs, -r_fit * r_y, r_fit * cs + r_th * sn], axis=-1)
     length = np.linalg.norm(nrm, axis=-1)
-    valid = img.valid & np.isfinite(best_key) & np.isfinite(length) & (length > 0) & (r_fit > 0)
+    with np.errstate(invalid="ignore"):
+        valid = img.valid & np.isfinite(best_key) & np.isfinite(length) & (length > 0) & (r_fit > 0)
     normals = np.where(valid[..., None], nrm / np.where(valid, length, 1.0)[..., None], np.nan)
     yy = np.broadcast_to(img.y[:, None], shape)
-    points = np.stack([r_fit * sn, yy, r_fit * cs], axis=-1)
-    points = np.where(valid[..., None], points, np.nan)
-    sig2 = best[..., 3]
-    residual = np.where(valid, np.sqrt(np.where(np.isinf(sig2), 0.0, np.where(valid, sig2, 0.0))), np.nan)
+    points = np.where(valid[..., None], np.stack([r_fit * sn, yy, r_fit * cs], axis=-1), np.nan)
+    sig2 = np.where(valid & np.isfinite(sig2), sig2, 0.0)
+    residual = np.where(valid, np.sqrt(sig2), np.nan)
     return points, normals, valid, residual
 
 
@@ -482,7 +536,8 @@ def range_image_to_mesh(img: RangeImage, max_jump: float | None = None):
     rows = np.arange(H - 1)
     ii, jj = np.meshgrid(rows, cols, indexing="ij")
     jn = j1[None, :].repeat(len(rows), 0)
-    a, b, c, d = (ii, jj), (ii, jn), (ii + 1, jj), (ii + 1, jn)  # a b / c d; +col = +theta, +row = -y
+    # Quad corners a b / c d: +column = +theta, +row = -y.
+    a, b, c, d = (ii, jj), (ii, jn), (ii + 1, jj), (ii + 1, jn)
     with np.errstate(invalid="ignore"):
         quad = valid[a] & valid[b] & valid[c] & valid[d]
         for p, q in ((a, b), (c, d), (a, c), (b, d)):
@@ -549,43 +604,74 @@ def _frames(n: np.ndarray):
     return t1, np.cross(n, t1)
 
 
-def _mesh_fits(v, nbr, normal, weight_mask, centre_weight):
-    """Weighted quadratic height field over each vertex's neighbourhood, in the
-    frame of `normal` at the vertex. `weight_mask` `(N, k)` bool: samples used;
-    `centre_weight` scales the vertex's own sample (0 = leave it out).
+_CHUNK = 8000  # vertices per block in the mesh fits (temporaries stay in cache)
 
-    **Returns:** dict with `coef` `(N, 6)` (height [m] in units of `rho`),
-    `Minv`, `sigma2` (weighted residual variance [m^2], inf when exact), `ok`,
-    `rho` `(N,)` [m], `t1`, `t2`, `n`, `resid` `(N, k)` [m], `used` `(N, k)`.
+
+def _mesh_fits(v, nbr, normal, weight_mask, centre_weight, gaussian=True, leverage=False):
+    """Quadratic height field over each neighbourhood `nbr` `(n, k)` (first
+    column: the vertex itself), in the frame of `normal` `(n, 3)` at the vertex.
+    `weight_mask` `(n, k)` bool: samples used; `centre_weight` scales the
+    vertex's own sample (0 = leave it out); `gaussian`: Gaussian weights
+    (sigma = half the neighbourhood radius) rather than equal ones; `leverage`:
+    also return the hat-matrix diagonal `(n, k)`.
+
+    Coordinates are `xs, ys = (x, y) / rho` with `rho` the neighbourhood radius;
+    heights stay in metres.
+
+    **Returns:** dict with `c0..c5` `(n,)` coefficients, inverse normal matrix
+    entries `_VAR_IDX` scaled so that `sigma2 * entry` is a covariance,
+    `sigma2` `(n,)` weighted residual variance [m^2] (inf for an exact fit, NaN
+    where no usable fit), `ok`, `rho` `(n,)` [m], frame `t1`, `t2`, `n`
+    `(n, 3)`, `resid` `(n, k)` [m], `used` `(n, k)` bool (and `hat` `(n, k)`).
     """
+    parts = [_mesh_fits_block(v, nbr[a:a + _CHUNK], normal[a:a + _CHUNK], weight_mask[a:a + _CHUNK],
+                              centre_weight, gaussian, leverage)
+             for a in range(0, len(nbr), _CHUNK)]
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def _mesh_fits_block(v, nbr, normal, weight_mask, centre_weight, gaussian, leverage):
     t1, t2 = _frames(normal)
-    d = v[nbr] - v[:, None, :]  # (N, k, 3)
+    d = v[nbr] - v[nbr[:, :1]]  # (n, k, 3)
     x = np.einsum("nkj,nj->nk", d, t1)
     y = np.einsum("nkj,nj->nk", d, t2)
     z = np.einsum("nkj,nj->nk", d, normal)
-    dist = np.sqrt(x * x + y * y)
-    rho = np.max(np.where(weight_mask, dist, 0.0), axis=1)
+    dist2 = x * x + y * y
+    rho = np.sqrt(np.max(np.where(weight_mask, dist2, 0.0), axis=1))
     rho = np.where(rho > 0, rho, 1.0)
     xs, ys = x / rho[:, None], y / rho[:, None]
-    w = np.exp(-2.0 * (xs * xs + ys * ys)) * weight_mask  # Gaussian, sigma = rho / 2
+    if gaussian:
+        w = np.exp(-2.0 * (xs * xs + ys * ys)) * weight_mask
+    else:
+        w = weight_mask.astype(np.float64)
     w[:, 0] *= centre_weight
-    phi = _basis(xs, ys)  # (N, k, 6)
-    M = np.einsum("nk,nki,nkj->nij", w, phi, phi)
-    b = np.einsum("nk,nki,nk->ni", w, phi, z)
+    phi = _basis(xs, ys)  # (n, k, 6)
+    wphi_t = phi.transpose(0, 2, 1) * w[:, None, :]
+    M = np.matmul(wphi_t, phi)
+    b = np.matmul(wphi_t, z[..., None])[..., 0]
     used = w > 0
     n_used = used.sum(1)
     Minv, ok = _solve_batched(M, n_used >= _NPARAM)
     coef = np.einsum("nij,nj->ni", Minv, b)
-    resid = z - np.einsum("nki,ni->nk", phi, coef)
+    c = [coef[:, i] for i in range(_NPARAM)]
+    fit, _, _ = _evaluate([ci[:, None] for ci in c], xs, ys)
+    resid = z - fit
     wsum = w.sum(1)
-    # Weighted variance with the weights normalised to mean 1 over the used samples.
+    # Weights normalised to mean 1 over the used samples: sigma2 is then a
+    # per-sample variance and sigma2 * (sum wn phi phi^T)^-1 the covariance.
     wn = w * (n_used / np.where(wsum > 0, wsum, 1.0))[:, None]
     dof = n_used - _NPARAM
     sigma2 = np.where(dof > 0, np.sum(wn * resid**2, 1) / np.maximum(dof, 1), np.inf)
-    # Covariance of the coefficients in the same normalisation: sigma2 * (sum wn phi phi)^-1.
-    Minv = Minv * (wsum / np.where(n_used > 0, n_used, 1))[:, None, None]
-    return dict(coef=coef, Minv=Minv, sigma2=sigma2, ok=ok, rho=rho, t1=t1, t2=t2, n=normal,
-                resid=resid, used=used, x=x, y=y, z=z)
+    scale = wsum / np.where(n_used > 0, n_used, 1)
+    out = {f"c{i}": c[i] for i in range(_NPARAM)}
+    out.update({ij: Minv[:, ij[0], ij[1]] * scale for ij in _VAR_IDX})
+    out.update(sigma2=np.where(ok, sigma2, np.nan), ok=ok, rho=rho, t1=t1, t2=t2, n=normal,
+               resid=resid, used=used)
+    if leverage:
+        # h_q = w_q phi_q^T Minv phi_q, phi = (1, x, y, x^2, xy, y^2).
+        out["hat"] = w * np.einsum("nki,nij,nkj->nk", phi, Minv, phi, optimize=True)
+        out["loo_var"] = Minv[:, 0, 0]  # variance factor of the fitted value at the vertex
+    return out
 
 
 def mesh_quadratic_normals(vertices, faces, k: int = 24, adaptive: bool = True,
@@ -594,29 +680,36 @@ def mesh_quadratic_normals(vertices, faces, k: int = 24, adaptive: bool = True,
 
     For every vertex, its `k` nearest vertices (itself included; scipy cKDTree)
     are expressed in a local frame whose z axis is the vertex's normal (first the
-    area-weighted face normal, then, for `iterations > 1`, the previous fit's
-    normal); neighbours whose initial normal faces away (the other side of a thin
-    part) are left out. A height field `h = quadratic(x, y)` is fitted by weighted
-    least squares (Gaussian weights, sigma = half the neighbourhood radius).
+    area-weighted face normals summed over the neighbourhood, then, for
+    `iterations > 1`, the previous fit's normal); neighbours whose initial normal
+    faces away (the other side of a thin part) are left out. A height field
+    `h = quadratic(x, y)` is fitted by weighted least squares (Gaussian weights,
+    sigma = half the neighbourhood radius).
 
-    Outliers: each vertex is tested against the fit of its neighbours with itself
-    left out; it is an outlier when `|residual| > outlier_k x` the neighbours'
-    robust scale (1.4826 x median |residual|, corrected for the fit's degrees of
-    freedom, floored at 1e-3 x the neighbourhood radius). The test runs twice, the
-    second time with the first round's outliers removed from every neighbourhood,
-    so that a spike does not condemn its neighbours. Outliers are excluded from
-    all fits and are moved onto a fit like any other vertex.
+    Outliers: each vertex is tested against a plain least-squares quadratic of
+    its neighbours with itself left out. Its residual is compared with
+    `outlier_k x scale x sqrt(1 + v0)`, where `v0` is the fit's variance factor
+    at the vertex (prediction variance) and `scale` is robust: per vertex,
+    1.4826 x the median of its neighbours' leverage-corrected residuals
+    `|e| / sqrt(1 - h)`, then pooled as the median of that over the
+    neighbourhood (a scale from ~20 residuals is noisy enough to give heavy
+    tails), floored at 1e-3 x the neighbourhood radius. Vertices whose
+    neighbourhood held a first-round outlier are tested again without them, so
+    that a spike does not condemn its neighbours. Outliers are excluded from
+    every fit and are moved onto a fit like any other vertex.
 
     Adaptive (discontinuity-aware) rule: with `adaptive=True` a vertex may take
     the fit of any of its `k` neighbours whose neighbourhood contains it, not only
     its own; the fit with the smallest estimated variance of the slope at the
-    vertex (`sigma_hat^2 g^T Cov g`, as `quadratic_fit`'s default `select`)
-    wins, so fits straddling a crease or a gap lose to one-sided ones.
+    vertex (`max(sigma_hat^2, floor) g^T Cov g`, as `quadratic_fit`'s default
+    `select`; `floor` = twice the median `sigma_hat^2` over all fits) wins, so
+    fits straddling a crease or a gap lose to one-sided ones while on smooth
+    ground the vertex's own, centred fit is kept.
 
     The vertex moves onto the chosen height field along that fit's frame normal;
-    the normal is the height field's normal there, oriented like the vertex's
-    area-weighted normal. A vertex with no usable fit keeps its position and its
-    area-weighted normal.
+    the normal is the height field's normal there, oriented like the initial
+    normal. A vertex with no usable fit keeps its position and its initial
+    normal.
 
     **Arguments:** `vertices` `(N, 3)` [m]; `faces` `(F, 3)` int; `k` >= 7 and
     <= N; `adaptive` bool; `outlier_k` > 0; `iterations` >= 1.
@@ -625,16 +718,16 @@ def mesh_quadratic_normals(vertices, faces, k: int = 24, adaptive: bool = True,
     `outlier` `(N,)` bool.
     """
     v, f = _check_mesh(vertices, faces)
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 7:
+    if not _is_int(k, 7):
         raise ValueError(f"k: must be an integer >= 7, got {k!r}")
     if k > len(v):
         raise ValueError(f"k: must not exceed the number of vertices ({len(v)}), got {k}")
     outlier_k = _check_positive("outlier_k", outlier_k)
-    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+    if not _is_int(iterations, 1):
         raise ValueError(f"iterations: must be an integer >= 1, got {iterations!r}")
     N, k = len(v), int(k)
 
-    n_area, has_area = _unit(_area_normals(v, f))
+    area = _area_normals(v, f)
     _, nbr = cKDTree(v).query(v, k=k)
     nbr = np.asarray(nbr, dtype=np.int64)
     # Make sure each vertex is first in its own list (ties with duplicates).
@@ -642,28 +735,44 @@ def mesh_quadratic_normals(vertices, faces, k: int = 24, adaptive: bool = True,
     has_self = (nbr == np.arange(N)[:, None]).any(1)
     nbr[has_self, self_pos[has_self]] = nbr[has_self, 0]
     nbr[:, 0] = np.arange(N)
-    # Vertices in no face take the mean normal of their neighbours.
-    n0 = n_area.copy()
-    fill, _ = _unit(n_area[nbr].sum(1))
-    n0[~has_area] = fill[~has_area]
-    has0 = np.linalg.norm(n0, axis=1) > 0
-    n0[~has0] = [0.0, 1.0, 0.0]
+    # Initial normal: the area-weighted face normals summed over the neighbourhood.
+    # A vertex's own face normal is as noisy as the data (tens of degrees at a
+    # noise near the sampling step, sometimes past 90): too noisy to orient by.
+    n0, has0 = _unit(area[nbr].sum(1))
+    n0[~has0] = _unit(area)[0][~has0]
+    n0[np.linalg.norm(n0, axis=1) == 0] = [0.0, 1.0, 0.0]
     same_side = np.einsum("nkj,nj->nk", n0[nbr], n0) > 0
     same_side[:, 0] = True
 
-    def outlier_round(mask):
-        fit = _mesh_fits(v, nbr, n0, same_side & mask, centre_weight=0.0)
-        res = np.abs(fit["resid"][:, 0])
-        r_n = np.where(fit["used"], np.abs(fit["resid"]), np.nan)
-        r_n[:, 0] = np.nan
-        med = np.nanmedian(np.where(np.isnan(r_n).all(1, keepdims=True), 0.0, r_n), axis=1)
-        n_used = fit["used"].sum(1)
-        dof_corr = np.sqrt(n_used / np.maximum(n_used - _NPARAM, 1))
-        scale = np.maximum(_MAD * med * dof_corr, 1e-3 * fit["rho"])
-        return fit["ok"] & (res > outlier_k * scale)
+    def outlier_round(rows, mask):
+        # Plain least squares over the neighbours with the vertex left out: the
+        # vertex's residual, the fit's prediction-variance factor there, and a
+        # robust scale from the neighbours' leverage-corrected residuals.
+        fit = _mesh_fits(v, nbr[rows], n0[rows], same_side[rows] & mask, centre_weight=0.0,
+                         gaussian=False, leverage=True)
+        std = np.abs(fit["resid"]) / np.sqrt(np.clip(1.0 - fit["hat"], 0.05, 1.0))
+        std = np.where(fit["used"], std, np.nan)
+        std[:, 0] = np.nan
+        none = np.isnan(std).all(1, keepdims=True)
+        raw = _MAD * np.nanmedian(np.where(none, 0.0, std), axis=1)
+        return np.abs(fit["resid"][:, 0]), raw, fit["loo_var"], fit["ok"], fit["rho"]
 
-    first = outlier_round(np.ones((N, k), dtype=bool))
-    outlier = outlier_round(~first[nbr])
+    def decide(rows, res, raw_all, loo, ok, rho):
+        # A scale from ~20 residuals is itself noisy (heavy-tailed ratios), so
+        # pool it: the median of the neighbours' scales.
+        scale = np.maximum(np.median(raw_all[nbr[rows]], axis=1), 1e-3 * rho)
+        return ok & (res > outlier_k * scale * np.sqrt(1.0 + loo))
+
+    all_rows = np.arange(N)
+    res, raw, loo, ok, rho = outlier_round(all_rows, np.ones((N, k), dtype=bool))
+    first = decide(all_rows, res, raw, loo, ok, rho)
+    # Second round, only where a neighbour was flagged: re-test without the flagged.
+    touched = np.flatnonzero(first[nbr[:, 1:]].any(1))
+    outlier = first.copy()
+    if len(touched):
+        res2, raw2, loo2, ok2, rho2 = outlier_round(touched, ~first[nbr[touched]])
+        raw[touched] = raw2
+        outlier[touched] = decide(touched, res2, raw, loo2, ok2, rho2)
     keep = ~outlier[nbr]
 
     normal = n0
@@ -682,39 +791,51 @@ def _evaluate_mesh_fits(v, nbr, fit, n_orient, adaptive):
     """Pick, for every vertex, the best fit among its candidates and evaluate it
     there: `(normals (N, 3), points (N, 3))`, NaN where no fit is usable."""
     N, k = nbr.shape
-    idx = np.arange(N)
-    best_key = np.full(N, np.inf)
-    best_n = np.full((N, 3), np.nan)
-    best_p = np.full((N, 3), np.nan)
-    cands = range(k) if adaptive else range(1)
-    for m in cands:
+    # contains[i, m]: is vertex i among the k nearest of its m-th neighbour c,
+    # i.e. no farther from c than c's k-th nearest? (kNN is not symmetric.)
+    dist = np.linalg.norm(v[nbr] - v[:, None, :], axis=-1)
+    contains = dist <= dist.max(axis=1)[nbr] * (1 + 1e-12)
+    names = [f"c{i}" for i in range(_NPARAM)] + list(_VAR_IDX) + ["sigma2", "rho"]
+    table = np.concatenate([np.stack([fit[key] for key in names], 1),
+                            fit["t1"], fit["t2"], fit["n"]], 1)
+    floor = _noise_floor(fit["sigma2"])
+    normals = np.full((N, 3), np.nan)
+    points = np.full((N, 3), np.nan)
+    for a in range(0, N, _CHUNK):
+        blk = slice(a, min(a + _CHUNK, N))
+        normals[blk], points[blk] = _evaluate_block(
+            v, v[blk], nbr[blk], contains[blk], table, names, n_orient[blk], floor,
+            k if adaptive else 1)
+    return normals, points
+
+
+def _evaluate_block(v, vb, nbr, contains, table, names, n_orient, floor, n_cand):
+    n = len(vb)
+    best_key = np.full(n, np.inf)
+    best_n = np.full((n, 3), np.nan)
+    best_p = np.full((n, 3), np.nan)
+    for m in range(n_cand):
         c = nbr[:, m]
-        contains = (nbr[c] == idx[:, None]).any(1)
-        rho = fit["rho"][c]
-        t1, t2, nc = fit["t1"][c], fit["t2"][c], fit["n"][c]
-        d = v - v[c]
+        row = table[c]
+        f = {key: row[:, i] for i, key in enumerate(names)}
+        rho = f["rho"]
+        t1, t2, nc = row[:, -9:-6], row[:, -6:-3], row[:, -3:]
+        d = vb - v[c]
         xs = np.einsum("nj,nj->n", d, t1) / rho
         ys = np.einsum("nj,nj->n", d, t2) / rho
-        coef = fit["coef"][c]
-        phi = _basis(xs, ys)
-        gx = np.zeros_like(phi)
-        gx[:, 1], gx[:, 3], gx[:, 4] = 1.0, 2 * xs, ys
-        gy = np.zeros_like(phi)
-        gy[:, 2], gy[:, 4], gy[:, 5] = 1.0, xs, 2 * ys
-        hgt = np.einsum("ni,ni->n", phi, coef)
-        hx = np.einsum("ni,ni->n", gx, coef) / rho
-        hy = np.einsum("ni,ni->n", gy, coef) / rho
-        Minv = fit["Minv"][c]
-        var = (np.einsum("ni,nij,nj->n", gx, Minv, gx) + np.einsum("ni,nij,nj->n", gy, Minv, gy)) / rho**2
-        sig2 = fit["sigma2"][c]
-        key = np.where(np.isinf(sig2), _BIG, sig2 * var)
-        key = np.where(fit["ok"][c] & contains & np.isfinite(key), key, np.inf)
-        nrm = nc - hx[:, None] * t1 - hy[:, None] * t2
-        nrm, okn = _unit(nrm)
-        flip = np.where(np.einsum("nj,nj->n", nrm, n_orient) < 0, -1.0, 1.0)
-        pts = v[c] + (xs * rho)[:, None] * t1 + (ys * rho)[:, None] * t2 + hgt[:, None] * nc
+        hgt, hx, hy = _evaluate([f[f"c{i}"] for i in range(_NPARAM)], xs, ys)
+        hx, hy = hx / rho, hy / rho
+        vs, vt = _slope_variances(f, xs, ys)
+        sig2 = f["sigma2"]
+        key = np.where(np.isinf(sig2), _BIG, np.maximum(sig2, floor) * (vs + vt) / rho**2)
+        key = np.where(contains[:, m] & np.isfinite(key), key, np.inf)
+        nrm, okn = _unit(nc - hx[:, None] * t1 - hy[:, None] * t2)
         better = (key < best_key) & okn
-        best_key = np.where(better, key, best_key)
-        best_n = np.where(better[:, None], nrm * flip[:, None], best_n)
-        best_p = np.where(better[:, None], pts, best_p)
+        if not better.any():
+            continue
+        best_key[better] = key[better]
+        flip = np.where(np.einsum("nj,nj->n", nrm, n_orient) < 0, -1.0, 1.0)
+        best_n[better] = nrm[better] * flip[better, None]
+        best_p[better] = (v[c] + (xs * rho)[:, None] * t1 + (ys * rho)[:, None] * t2
+                          + hgt[:, None] * nc)[better]
     return best_n, best_p
