@@ -49,7 +49,7 @@ from .raycast import RayCaster
 from .rig import observation_geometry
 
 __all__ = ["MEASURED", "INTERPOLATED", "UNRESOLVED", "LocalOptions", "Estimate", "estimate_local",
-           "specular_closed_form", "quantisation_step"]
+           "prepare_rows", "fit_rows", "specular_closed_form", "quantisation_step"]
 
 MEASURED, INTERPOLATED, UNRESOLVED = 0, 1, 2
 ROUGHNESS_NAME = {"torrance-sparrow": "sigma", "ward": "alpha"}
@@ -62,7 +62,7 @@ class LocalOptions:
 
     model: str = "torrance-sparrow"
     paper: bool = False
-    steps: int = 20
+    steps: int = 30
     window: int = 5
     min_snr: float = 3.0
     solver: str = "lm"
@@ -82,7 +82,9 @@ class Estimate:
     """Per-point reflectance: `pd` `(N, 3)`, `ps` `(N,)`, `roughness` `(N,)`
     [rad] (sigma or alpha, per `model`), `status` `(N,)` int8, standard
     deviations `std_pd` `(N, 3)`, `std_ps`, `std_roughness` `(N,)`,
-    `specular_identifiable` `(N,)` bool, and `meta` (options, timings)."""
+    `specular_identifiable` `(N,)` bool (ps and roughness from the point's own
+    samples), `pd_measured` `(N,)` bool (the point had usable samples), and
+    `meta` (options, timings)."""
 
     pd: np.ndarray
     ps: np.ndarray
@@ -92,6 +94,7 @@ class Estimate:
     std_ps: np.ndarray
     std_roughness: np.ndarray
     specular_identifiable: np.ndarray
+    pd_measured: np.ndarray
     model: str
     meta: dict = field(default_factory=dict)
 
@@ -193,10 +196,13 @@ def _noise_weights(y, use, floor):
 # -- the estimator ------------------------------------------------------------------------------
 
 
-def _prepare(scan, options, caster):
+def prepare_rows(scan, thresholds: Thresholds = Thresholds(), caster: RayCaster | None = None) -> dict:
+    """Per-(point, light) arrays of a scan, each `(N, M)` (`y` `(N, M, 3)`): radiance `y`,
+    irradiance `e = Y cos_i / C^2` (0 where unused), `cos_i`, `cos_o`, `theta_r`,
+    `use` (measurable and observed) and `classes` (see `classify`)."""
+    caster = caster or RayCaster(scan.vertices, scan.faces)
     g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
-    m = classify_scan(scan, options.thresholds, caster=caster)
-    classes = m.classes
+    classes = classify_scan(scan, thresholds, caster=caster).classes
     use = classes != T_INVALID
     y = np.where(use[..., None], scan.radiance, 0.0).astype(np.float64)
     cos_i, cos_o, theta_r = (np.asarray(a) for a in (g.cos_i, g.cos_o, g.theta_r))
@@ -239,6 +245,43 @@ def _specular_init(model, data, pd, paper):
     return specular_closed_form(model, z, x, spec_use) + (n_spec,)
 
 
+_ROUGHNESS_GRID = np.geomspace(0.003, 1.2, 64)
+
+
+def _grid_init(model, data, w):
+    """Robust start by variable projection: for a fixed roughness the model is linear
+    in (pd_r, pd_g, pd_b, ps). Solve that weighted least-squares problem in closed
+    form (ps, pd >= 0 by projection) on a dense roughness grid and keep the best.
+
+    **Returns:** `(pd (N, 3), ln_ps (N,), ln_rough (N,))`.
+    """
+    _, spec_fn = brdf.MODELS[model]
+    e, use, y = data["e"], data["use"], data["y"]
+    ww = jnp.where(use[..., None], w * w, 0.0)  # (N, M, 3)
+    a1 = (e / jnp.pi)[..., None]
+    s11 = (ww * a1 * a1).sum(1)  # (N, 3)
+    b1 = (ww * a1 * y).sum(1)
+    spec_rows = jax.vmap(jax.vmap(spec_fn, in_axes=(None, None, 0, 0, 0)), in_axes=(None, None, 0, 0, 0))
+
+    def profile(log_r):
+        a2 = (e * spec_rows(1.0, log_r, data["cos_i"], data["cos_o"], data["theta_r"]))[..., None]
+        s12, s22, b2 = (ww * a1 * a2).sum(1), (ww * a2 * a2).sum(1), (ww * a2 * y).sum(1)
+        s11_safe = jnp.maximum(s11, 1e-300)
+        den = s22.sum(1) - (s12 * s12 / s11_safe).sum(1)
+        ps = (b2.sum(1) - (s12 * b1 / s11_safe).sum(1)) / jnp.where(den > 0, den, 1.0)
+        ps = jnp.where(den > 0, jnp.maximum(ps, 0.0), 0.0)
+        pd = jnp.maximum((b1 - s12 * ps[:, None]) / s11_safe, 0.0)
+        cost = (ww * (y - a1 * pd[:, None, :] - a2 * ps[:, None, None]) ** 2).sum((1, 2))
+        return cost, ps, pd
+
+    logs = jnp.log(jnp.asarray(_ROUGHNESS_GRID))
+    cost, ps, pd = jax.vmap(profile, out_axes=(1, 1, 1))(logs)
+    best = jnp.argmin(cost, axis=1)
+    ps_best = jnp.take_along_axis(ps, best[:, None], 1)[:, 0]
+    pd_best = jnp.take_along_axis(pd, best[:, None, None], 1)[:, 0]
+    return pd_best, jnp.log(jnp.maximum(ps_best, 1e-12)), logs[best]
+
+
 def _refit_diffuse(model, data, ln_ps, ln_rough, w):
     """Closed-form pd `(N, 3)` and its std with the specular part fixed, over all valid samples."""
     _, spec_fn = brdf.MODELS[model]
@@ -270,6 +313,90 @@ def _solve_optimistix(residual, p0, data, steps):
     return jax.jit(jax.vmap(one))(p0, data)
 
 
+def _bucket(n: int, step: int) -> int:
+    return max(step, -(-n // step) * step)
+
+
+def _pad_rows(rows: dict) -> dict:
+    """Pad rows and observations with unused entries to bucketed sizes, so that
+    scans of similar size reuse one compilation (rows to multiples of 1000, or of
+    10000 past 20000; observations to multiples of 4)."""
+    n, m = np.shape(rows["use"])
+    n_pad = _bucket(n, 1000 if n <= 20_000 else 10_000)
+    m_pad = _bucket(m, 4)
+    out = {}
+    for key, value in rows.items():
+        value = np.asarray(value)
+        widths = [(0, n_pad - n), (0, m_pad - m)] + [(0, 0)] * (value.ndim - 2)
+        fill = T_INVALID if key == "classes" else (1.0 if key in ("cos_i", "cos_o") else 0)
+        out[key] = np.pad(value, widths, constant_values=fill)
+    return out
+
+
+class RowFit(dict):
+    """`fit_rows` output (a dict): `params` `(N, 5)` = (ln pd_rgb, ln ps, ln roughness),
+    `sd_log` `(N, 5)` their standard deviations, `identifiable` `(N,)` (specular part
+    measured), `has_diffuse_sample` `(N,)`, `weights` `(N, M, 3)` residual weights."""
+
+
+def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: float = 0.0) -> RowFit:
+    """Steps 1-3 of Method I (closed forms, polish, uncertainty) on `prepare_rows` output.
+
+    `noise_floor`: absolute radiance noise floor of the weights (e.g. the
+    quantisation step / sqrt(12)).
+    """
+    n_rows, n_obs = np.shape(rows["use"])
+    jrows = {k: jnp.asarray(v) for k, v in _pad_rows(rows).items()}
+    pd0, has_diff = _diffuse_init(jrows["y"], jrows["e"], jrows["use"], jrows["classes"], jrows["theta_r"],
+                                  options.paper)
+    ln_ps0, ln_rough0, spec_ok, n_spec = _specular_init(options.model, jrows, pd0, options.paper)
+    w = _noise_weights(jrows["y"], jrows["use"], noise_floor)
+    lm_data = {k: jrows[k] for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
+    lm_data["w"] = w
+    residual = _make_residual(options.model)
+
+    def start(pd, ln_ps, ln_rough):
+        # Log parameters cannot leave 0: start every albedo at >= 0.1 %.
+        return jnp.concatenate([jnp.log(jnp.maximum(pd, 1e-3)), ln_ps[:, None], ln_rough[:, None]], axis=1)
+
+    p0 = start(pd0, ln_ps0, ln_rough0)
+    if options.paper:
+        params = p0
+    else:
+        # Two starts per row -- the closed form and the roughness grid -- polished
+        # together; the lower final cost wins (broad, bright lobes have false minima).
+        p_grid = start(*_grid_init(options.model, jrows, w))
+        starts = jnp.concatenate([p0, p_grid])
+        both = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a]), lm_data)
+        if options.solver == "lm":
+            out = solve_rows(residual, starts, both, options.steps)
+            polished, cost = out.params, out.cost
+        else:
+            polished = _solve_optimistix(residual, starts, both, options.steps)
+            cost = jax.vmap(lambda p, d: jnp.sum(residual(p, d) ** 2))(polished, both)
+        n = p0.shape[0]
+        cost = jnp.where(jnp.all(jnp.isfinite(polished), axis=1), cost, jnp.inf)
+        params = jnp.where((cost[n:] < cost[:n])[:, None], polished[n:], polished[:n])
+        spec_ok = spec_ok | jnp.isfinite(jnp.minimum(cost[:n], cost[n:]))
+    params = jnp.where(jnp.all(jnp.isfinite(params), axis=1, keepdims=True), params, p0)
+    # Rows the data cannot pin down may wander; keep every exp() finite (they stay flagged).
+    params = jnp.clip(params, jnp.array([[_LN_FLOOR] * 4 + [np.log(1e-4)]]),
+                      jnp.array([[np.log(10.0)] * 4 + [np.log(np.pi / 2)]]))
+    cov = covariance(residual, params, lm_data, 3 * jrows["use"].sum(1))
+    params, cov = np.asarray(params)[:n_rows], np.asarray(cov)[:n_rows]
+    spec_ok, n_spec, has_diff = (np.asarray(a)[:n_rows] for a in (spec_ok, n_spec, has_diff))
+    w = w[:n_rows, :n_obs]
+    var = np.diagonal(cov, axis1=1, axis2=2)
+    sd_log = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
+    # The paper needs two T_spec samples; the full-model fit can also pin the lobe down
+    # from T_none samples, so identifiability is judged on the fit's own uncertainty.
+    enough = np.asarray(n_spec) >= 2 if options.paper else np.asarray(rows["use"]).sum(1) >= 3
+    identifiable = enough & np.asarray(spec_ok) & np.all(np.isfinite(params), 1) \
+        & (sd_log[:, 3] < 1.0 / options.min_snr) & (sd_log[:, 4] < 1.0)
+    return RowFit(params=params, sd_log=sd_log, identifiable=identifiable,
+                  has_diffuse_sample=np.asarray(has_diff), weights=w)
+
+
 def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None) -> Estimate:
     """Method I on a scan with radiance. See the module docstring.
 
@@ -280,47 +407,17 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
         raise ValueError("radiance: the scan has no observations to estimate from")
     timings = {}
     t0 = time.perf_counter()
-    caster = caster or RayCaster(scan.vertices, scan.faces)
-    data = _prepare(scan, options, caster)
-    q = quantisation_step(scan.radiance, data["use"])
-    floor = q / np.sqrt(12.0)
-    jdata = {k: jnp.asarray(v) for k, v in data.items()}
+    rows = prepare_rows(scan, options.thresholds, caster)
+    q = quantisation_step(scan.radiance, rows["use"])
     timings["classify"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    pd0, has_diff = _diffuse_init(jdata["y"], jdata["e"], jdata["use"], jdata["classes"], jdata["theta_r"],
-                                  options.paper)
-    ln_ps0, ln_rough0, spec_ok, n_spec = _specular_init(options.model, jdata, pd0, options.paper)
-    timings["closed_form"] = time.perf_counter() - t0
-
-    w = _noise_weights(jdata["y"], jdata["use"], floor)
-    lm_data = {"y": jdata["y"], "e": jdata["e"], "cos_i": jdata["cos_i"], "cos_o": jdata["cos_o"],
-               "theta_r": jdata["theta_r"], "use": jdata["use"], "w": w}
-    residual = _make_residual(options.model)
-    p0 = jnp.concatenate([jnp.log(jnp.maximum(pd0, 1e-6)), ln_ps0[:, None], ln_rough0[:, None]], axis=1)
-    t0 = time.perf_counter()
-    if options.paper:
-        params = p0
-    elif options.solver == "lm":
-        params = solve_rows(residual, p0, lm_data, options.steps).params
-    else:
-        params = _solve_optimistix(residual, p0, lm_data, options.steps)
-    params = jnp.where(jnp.all(jnp.isfinite(params), axis=1, keepdims=True), params, p0)
-    n_valid = 3 * jdata["use"].sum(1)
-    cov = covariance(residual, params, lm_data, n_valid)
-    params, cov = np.asarray(params), np.asarray(cov)
-    timings["polish"] = time.perf_counter() - t0
+    fit = fit_rows(rows, options, noise_floor=q / np.sqrt(12.0))
+    timings["fit"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    var = np.diagonal(cov, axis1=1, axis2=2)
-    sd_log = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
-    observed_any = data["use"].any(1)
-    # The paper needs two T_spec samples; the full-model fit can also pin the lobe down
-    # from T_none samples, so identifiability is judged on the fit's own uncertainty.
-    enough = np.asarray(n_spec) >= 2 if options.paper else data["use"].sum(1) >= 3
-    identifiable = enough & np.asarray(spec_ok) & np.all(np.isfinite(params), 1) \
-        & (sd_log[:, 3] < 1.0 / options.min_snr) & (sd_log[:, 4] < 1.0)
-
+    params, sd_log, identifiable = fit["params"], fit["sd_log"], fit["identifiable"]
+    observed_any = rows["use"].any(1)
     pd = np.exp(params[:, :3])
     ps, rough = np.exp(params[:, 3]), np.exp(params[:, 4])
     # Delta method from the log parameters; an unknown (inf) log-std stays inf.
@@ -331,12 +428,12 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
     need_spec = ~identifiable
     if identifiable.any():
-        filled = window_fill(np.c_[params[:, 3], params[:, 4]], identifiable, adjacency, options.window)
+        filled = window_fill(params[:, 3:5], identifiable, adjacency, options.window)
         ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
         status[filled.window] = INTERPOLATED
         status[filled.diffused] = UNRESOLVED
-    else:  # nothing identifiable anywhere: no specular evidence, report none
-        ps[:], rough[:] = 0.0, np.exp(np.asarray(ln_rough0))
+    else:  # no specular reflection detected anywhere: report none, roughness undefined (0)
+        ps[:], rough[:] = 0.0, 0.0
         status[:] = UNRESOLVED
     std_ps[need_spec] = np.inf
     std_rough[need_spec] = np.inf
@@ -344,8 +441,9 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     # pd of points whose specular part came from elsewhere, with that part fixed.
     refit = need_spec & observed_any
     if refit.any():
-        pd_fix, std_fix = _refit_diffuse(options.model, jdata, jnp.log(jnp.maximum(ps, 1e-300)),
-                                         jnp.log(rough), w)
+        jrows = {k: jnp.asarray(v) for k, v in rows.items()}
+        pd_fix, std_fix = _refit_diffuse(options.model, jrows, jnp.log(jnp.maximum(ps, 1e-300)),
+                                         jnp.log(jnp.maximum(rough, 1e-300)), fit["weights"])
         pd[refit], std_pd[refit] = np.asarray(pd_fix)[refit], np.asarray(std_fix)[refit]
     if (~observed_any).any():
         if observed_any.any():
@@ -363,11 +461,12 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     for a in (pd, ps, rough):
         np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     for a in (std_pd, std_ps, std_rough):
-        np.nan_to_num(a, copy=False, nan=np.inf)
+        np.nan_to_num(a, copy=False, nan=np.inf, posinf=np.inf)
     meta = {"method": "local", "model": options.model,
             "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v)
                         for k, v in asdict(options).items()},
             "quantisation_step": q, "seconds": timings,
             "points_with_observations": int(observed_any.sum()),
-            "points_with_diffuse_only_sample": int(np.asarray(has_diff).sum())}
-    return Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, options.model, meta)
+            "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum())}
+    return Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, observed_any,
+                    options.model, meta)

@@ -107,3 +107,50 @@ def test_select_lights_with_and_without_radiance(tmp_path):
     assert results[0] == results[1]  # noise-free, unsaturated: images change nothing
     r = jaxrefl("select-lights", scan, "--target", "1.5")
     assert r.returncode == 2 and "target" in r.stderr
+
+
+def test_estimate_writes_result_and_summary(tmp_path):
+    scan = tmp_path / "v.npz"
+    assert jaxrefl("synth", "V", "--out", scan, "--resolution", 24, "--lights", "14,24,25,34,35,45",
+                   "--noise", 0.01).returncode == 0
+    out = tmp_path / "result.npz"
+    r = jaxrefl("estimate", scan, "--method", "local", "--out", out, "--json")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["method"] == "local" and summary["model"] == "torrance-sparrow"
+    assert 0 < summary["coverage"] <= 1 and {"classify", "fit", "fill"} <= set(summary["seconds"])
+    assert summary["errors"]["pd"]["measured"]["median"] < 0.02
+    with np.load(out) as z:
+        assert {"pd", "ps", "sigma", "status", "std_pd", "std_ps", "std_rough", "meta"} <= set(z.files)
+        assert z["status"].dtype == np.int8 and np.all(np.isfinite(z["pd"]))
+        assert json.loads(str(z["meta"]))["method"] == "local"
+    r = jaxrefl("estimate", scan, "--model", "ward", "--out", tmp_path / "w.npz")
+    assert r.returncode == 0, r.stderr
+    assert "alpha" in np.load(tmp_path / "w.npz").files
+
+
+BAD_ESTIMATE_INPUTS = [
+    ("radiance", lambda d: d.update(radiance=np.where(np.arange(d["radiance"].size).reshape(
+        d["radiance"].shape) == 7, np.nan, d["radiance"]))),
+    ("radiance", lambda d: d.update(radiance=d["radiance"] - 1.0)),
+    ("radiance", lambda d: d.update(radiance=d["radiance"][:, :1])),
+    ("faces", lambda d: d.update(faces=d["faces"] + len(d["vertices"]))),
+    ("normals", lambda d: d.update(normals=np.zeros_like(d["vertices"]))),
+    ("light_pos", lambda d: d.update(light_pos=d["light_pos"] * np.inf)),
+    ("radiance", lambda d: [d.pop(k) for k in ("radiance", "valid")]),  # planning bundle: no images
+]
+
+
+@pytest.mark.parametrize("field, corrupt", BAD_ESTIMATE_INPUTS)
+def test_estimate_bad_input(tmp_path, field, corrupt):
+    scan = tmp_path / "s.npz"
+    assert jaxrefl("synth", "V", "--out", scan, "--resolution", 20, "--lights", "24,25").returncode == 0
+    data = dict(np.load(scan))
+    corrupt(data)
+    np.savez(tmp_path / "bad.npz", **data)
+    out = tmp_path / "result.npz"
+    r = jaxrefl("estimate", tmp_path / "bad.npz", "--out", out)
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and field in lines[0] and "Traceback" not in r.stderr
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["bad.npz", "s.npz"]

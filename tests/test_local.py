@@ -1,0 +1,204 @@
+"""Method I: closed forms, recovery of noise-free parameters, calibration, hard cases."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from data_synth.scans import Sensor, make_scan
+from jaxrefl import brdf
+from jaxrefl.classify import T_DIFF, T_INVALID, T_NONE, T_SPEC, classify_scan
+from jaxrefl.lights import select_lights
+from jaxrefl.local import (INTERPOLATED, MEASURED, LocalOptions, estimate_local, fit_rows,
+                           specular_closed_form)
+
+from .helpers import unit
+
+
+def _reflect(wo, h):
+    return 2 * np.sum(wo * h, -1, keepdims=True) * h - wo
+
+
+def synthetic_rows(rng, n, m, model, rough=None, ps=None, spec_samples=5, grazing=False):
+    """Rows with random reflectance and geometry (normal +z), noise-free radiance.
+
+    The first `spec_samples` lights sit inside the specular lobe (half-vector angle
+    up to 1.5 roughness, within 20 degrees), the rest between 20 and 50 degrees."""
+    pd = rng.uniform(0.05, 0.9, (n, 3))
+    ps = rng.uniform(0.05, 1.0, n) if ps is None else np.full(n, ps)
+    rough = rng.uniform(0.03, 0.4, n) if rough is None else np.full(n, rough)
+    tv = rng.uniform(0, np.radians(89.9 if grazing else 50), n)
+    pv = rng.uniform(0, 2 * np.pi, n)
+    wo = np.stack([np.sin(tv) * np.cos(pv), np.sin(tv) * np.sin(pv), np.cos(tv)], -1)
+    th = np.where(np.arange(m)[None] < spec_samples,
+                  rng.uniform(0, 1, (n, m)) * np.minimum(1.5 * rough[:, None], np.radians(20)),
+                  rng.uniform(np.radians(21), np.radians(50), (n, m)))
+    ph = rng.uniform(0, 2 * np.pi, (n, m))
+    h = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    wi = unit(_reflect(wo[:, None], h))
+    cos_i, cos_o = wi[..., 2], np.broadcast_to(wo[:, None, 2], (n, m))
+    theta_r = np.arctan2(np.linalg.norm(np.cross([0, 0, 1.0], h), axis=-1), h[..., 2])
+    use = cos_i > 1e-3
+    e = np.where(use, rng.uniform(0.5, 2.0, (n, m)) * np.maximum(cos_i, 0), 0.0)
+    full, _ = brdf.MODELS[model]
+    f = jax.vmap(jax.vmap(full, in_axes=(None, None, None, 0, 0, 0)))(
+        jnp.asarray(pd), jnp.asarray(ps), jnp.log(jnp.asarray(rough)), cos_i, cos_o, theta_r)
+    y = np.where(use[..., None], np.asarray(f) * e[..., None], 0.0)
+    classes = np.where(~use, T_INVALID, np.where(theta_r <= np.radians(20), T_SPEC,
+                                                 np.where(theta_r > np.radians(60), T_DIFF, T_NONE)))
+    rows = {"y": y, "e": e, "cos_i": cos_i, "cos_o": np.asarray(cos_o), "theta_r": theta_r, "use": use,
+            "classes": classes.astype(np.int8)}
+    return rows, pd, ps, rough
+
+
+@pytest.mark.parametrize("model", ["torrance-sparrow", "ward"])
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_noise_free_parameters_are_recovered(model, seed):
+    rows, pd, ps, rough = synthetic_rows(np.random.default_rng(seed), 64, 10, model)
+    fit = fit_rows(rows, LocalOptions(model=model, steps=60))  # noise-free valleys converge slowly
+    p = np.exp(fit["params"])
+    assert fit["identifiable"].mean() > 0.95
+    ok = fit["identifiable"]
+    np.testing.assert_allclose(p[ok, :3], pd[ok], rtol=1e-4)
+    np.testing.assert_allclose(p[ok, 3], ps[ok], rtol=1e-4)
+    np.testing.assert_allclose(p[ok, 4], rough[ok], rtol=1e-4)
+
+
+def test_two_sample_closed_form_is_equation_7():
+    """i_s cos(theta_v) = ps exp(-theta_r^2 / 2 sigma^2) at two samples, solved exactly."""
+    ps, sigma = 0.37, 0.083
+    t1, t2 = 0.02, 0.11
+    z = np.array([[ps * np.exp(-t1**2 / (2 * sigma**2)), ps * np.exp(-t2**2 / (2 * sigma**2))]])
+    ln_ps, ln_sigma, ok = specular_closed_form("torrance-sparrow", jnp.asarray(z),
+                                               jnp.asarray([[t1**2, t2**2]]), jnp.ones((1, 2), bool))
+    # Eq. 7 by hand: ln z1 - ln z2 = (t2^2 - t1^2) / (2 sigma^2).
+    sigma_eq7 = np.sqrt((t2**2 - t1**2) / (2 * np.log(z[0, 0] / z[0, 1])))
+    ps_eq7 = z[0, 0] * np.exp(t1**2 / (2 * sigma_eq7**2))
+    assert bool(ok[0])
+    assert float(np.exp(ln_sigma[0])) == pytest.approx(sigma_eq7, rel=1e-12)
+    assert float(np.exp(ln_ps[0])) == pytest.approx(ps_eq7, rel=1e-12)
+    assert sigma_eq7 == pytest.approx(sigma, rel=1e-12)
+    # Ward: ln z = ln(ps / alpha^2) - tan^2 / alpha^2.
+    alpha = 0.07
+    x = np.tan([t1, t2]) ** 2
+    zw = ps / alpha**2 * np.exp(-x / alpha**2)
+    ln_ps_w, ln_alpha, ok = specular_closed_form("ward", jnp.asarray(zw[None]), jnp.asarray(x[None]),
+                                                 jnp.ones((1, 2), bool))
+    assert float(np.exp(ln_alpha[0])) == pytest.approx(alpha, rel=1e-12)
+    assert float(np.exp(ln_ps_w[0])) == pytest.approx(ps, rel=1e-12)
+    # Equal angles or a non-decaying lobe: no solution, flagged.
+    _, _, ok = specular_closed_form("torrance-sparrow", jnp.asarray(z), jnp.asarray([[t1**2, t1**2]]),
+                                    jnp.ones((1, 2), bool))
+    assert not bool(ok[0])
+
+
+@pytest.fixture(scope="module")
+def convex_noisy():
+    plan, _ = make_scan("V", resolution=64)
+    m = classify_scan(plan, use_observations=False)
+    selected = select_lights(m.diffuse_only, m.strong_specular, m.seen, weights=m.pixel_weight).selected
+    scan, _ = make_scan("V", resolution=64, lights=selected, sensor=Sensor(noise=0.01, bits=8), seed=3)
+    return scan, estimate_local(scan)
+
+
+def test_convex_object_accuracy(convex_noisy):
+    scan, est = convex_noisy
+    measured = est.status == MEASURED
+    rel = lambda a, b: np.abs(a - b) / b  # noqa: E731
+    assert np.median(rel(est.pd, scan.true_pd)[measured]) <= 0.01
+    assert np.median(rel(est.ps, scan.true_ps)[measured]) <= 0.05
+    assert np.median(rel(est.roughness, scan.true_sigma)[measured]) <= 0.05
+    assert measured.sum() / est.pd_measured.sum() > 0.4
+
+
+def test_uncertainty_is_calibrated(convex_noisy):
+    """55-80 % of measured points lie within one reported standard deviation (68 % ideal)."""
+    scan, est = convex_noisy
+    measured = est.status == MEASURED
+    for value, truth, std in ((est.pd, scan.true_pd, est.std_pd), (est.ps, scan.true_ps, est.std_ps),
+                              (est.roughness, scan.true_sigma, est.std_roughness)):
+        inside = (np.abs(value - truth) <= std)[measured].mean()
+        assert 0.55 <= inside <= 0.80
+
+
+def test_outputs_are_finite_and_flagged(convex_noisy):
+    scan, est = convex_noisy
+    for a in (est.pd, est.ps, est.roughness):
+        assert np.all(np.isfinite(a))
+    for a in (est.std_pd, est.std_ps, est.std_roughness):
+        assert not np.any(np.isnan(a))
+    assert np.all(np.isinf(est.std_ps[~est.specular_identifiable]))
+    assert np.all(est.status[~est.specular_identifiable] != MEASURED)
+
+
+@pytest.mark.parametrize("model", ["torrance-sparrow", "ward"])
+def test_specular_below_noise_is_flagged(model):
+    rng = np.random.default_rng(5)
+    rows, pd, _, _ = synthetic_rows(rng, 32, 10, model, ps=1e-6)
+    rows["y"] = rows["y"] * (1 + 0.01 * rng.standard_normal(rows["y"].shape))
+    fit = fit_rows(rows, LocalOptions(model=model))
+    assert not fit["identifiable"].any()
+    assert np.all(np.isfinite(fit["params"]))
+
+
+@pytest.mark.parametrize("rough", [0.01, 0.5])
+def test_extreme_roughness(rough):
+    rows, pd, ps, _ = synthetic_rows(np.random.default_rng(6), 32, 10, "torrance-sparrow", rough=rough)
+    fit = fit_rows(rows, LocalOptions(steps=40))
+    ok = fit["identifiable"]
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(np.exp(fit["params"][ok, 4]), rough, rtol=1e-3)
+    np.testing.assert_allclose(np.exp(fit["params"][ok, 3]), ps[ok], rtol=1e-3)
+
+
+def test_grazing_geometry_and_exact_peak_stay_finite():
+    rng = np.random.default_rng(7)
+    rows, pd, ps, rough = synthetic_rows(rng, 32, 8, "ward", grazing=True)
+    rows["theta_r"][:, 0] = 0.0  # an exact mirror sample
+    fit = fit_rows(rows, LocalOptions(model="ward"))
+    assert np.all(np.isfinite(fit["params"])) and not np.any(np.isnan(fit["sd_log"]))
+
+
+def test_saturated_samples_are_not_fitted():
+    clean, _ = make_scan("V", resolution=32, lights=[23, 24, 25, 26, 34, 35, 36])
+    top = float(np.percentile(clean.radiance[clean.valid].max(-1), 97))
+    scan, _ = make_scan("V", resolution=32, lights=[23, 24, 25, 26, 34, 35, 36],
+                        sensor=Sensor(full_scale=top, saturate=True))
+    est = estimate_local(scan)
+    saturated = np.any(scan.radiance >= scan.saturation, -1).any(1)
+    assert saturated.sum() > 10
+    measured = est.status == MEASURED
+    # Clipped highlights would drag ps down if they were fitted: they are not.
+    rel = np.abs(est.ps - scan.true_ps) / scan.true_ps
+    assert np.median(rel[measured & saturated]) < 1e-3
+
+
+def test_point_seen_by_one_light_only():
+    rng = np.random.default_rng(8)
+    rows, pd, ps, rough = synthetic_rows(rng, 16, 6, "torrance-sparrow", spec_samples=0)
+    rows["use"][:, 1:] = False
+    rows["classes"][:, 1:] = T_INVALID
+    rows["e"][:, 1:] = 0.0
+    fit = fit_rows(rows, LocalOptions())
+    assert not fit["identifiable"].any() and np.all(np.isfinite(fit["params"]))
+
+
+def test_interpolated_points_get_neighbour_values():
+    scan, _ = make_scan("V", resolution=32, lights=[24, 25, 34, 35])
+    est = estimate_local(scan)
+    interp = est.status == INTERPOLATED
+    assert interp.any() and (est.status == MEASURED).any()
+    assert np.all(np.isfinite(est.ps[interp])) and np.all(est.ps[interp] > 0)
+    assert np.all(np.isinf(est.std_roughness[interp]))
+
+
+def test_paper_mode_runs_and_is_no_better():
+    scan, _ = make_scan("V", resolution=32, lights=[14, 24, 25, 34, 35, 45], sensor=Sensor(noise=0.01))
+    ours, paper = estimate_local(scan), estimate_local(scan, LocalOptions(paper=True))
+    both = (ours.status == MEASURED) & (paper.status == MEASURED)
+    assert both.sum() > 50
+    err = lambda e: np.median(np.abs(e.pd - scan.true_pd)[both] / scan.true_pd[both])  # noqa: E731
+    assert err(ours) <= err(paper)
