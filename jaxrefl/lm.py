@@ -20,7 +20,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-__all__ = ["LMResult", "solve_rows", "covariance"]
+__all__ = ["LMResult", "solve_rows", "covariance", "spd_solve"]
 
 
 class LMResult(NamedTuple):
@@ -32,6 +32,31 @@ class LMResult(NamedTuple):
     cost: jax.Array
     accepted: jax.Array
     finite: jax.Array
+
+
+def spd_solve(a, b):
+    """Solve `a x = b` for one small symmetric positive definite `a` `(P, P)`.
+
+    Cholesky written out over the (static) matrix size: under `vmap` every
+    entry becomes one elementwise operation over all rows, far faster on a CPU
+    than batched LAPACK calls on tiny matrices.
+    """
+    n = a.shape[0]
+    low = [[None] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1):
+            acc = a[i, j] - sum((low[i][k] * low[j][k] for k in range(j)), 0.0)
+            if i == j:
+                low[i][i] = jnp.sqrt(jnp.maximum(acc, 1e-300))
+            else:
+                low[i][j] = acc / low[j][j]
+    z = [None] * n
+    for i in range(n):
+        z[i] = (b[i] - sum((low[i][k] * z[k] for k in range(i)), 0.0)) / low[i][i]
+    x = [None] * n
+    for i in reversed(range(n)):
+        x[i] = (z[i] - sum((low[k][i] * x[k] for k in range(i + 1, n)), 0.0)) / low[i][i]
+    return jnp.stack(x)
 
 
 def _cost(residual, p, data):
@@ -49,7 +74,7 @@ def _solve_row(residual, p0, data, steps, damping):
         jtj = jac.T @ jac
         g = jac.T @ r
         scale = jnp.diag(jtj) + 1e-12
-        step = jnp.linalg.solve(jtj + lam * jnp.diag(scale) + 1e-15 * jnp.eye(n_par), -g)
+        step = spd_solve(jtj + lam * jnp.diag(scale) + 1e-15 * jnp.eye(n_par), -g)
         step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
         p_new = p + step
         cost_new = _cost(residual, p_new, data)

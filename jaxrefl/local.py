@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -44,7 +44,7 @@ import numpy as np
 from . import brdf
 from .classify import T_DIFF, T_INVALID, T_SPEC, Thresholds, classify_scan
 from .fill import vertex_adjacency, window_fill
-from .lm import covariance, solve_rows
+from .lm import covariance, spd_solve
 from .raycast import RayCaster
 from .rig import observation_geometry
 
@@ -274,12 +274,16 @@ def _grid_init(model, data, w):
         cost = (ww * (y - a1 * pd[:, None, :] - a2 * ps[:, None, None]) ** 2).sum((1, 2))
         return cost, ps, pd
 
-    logs = jnp.log(jnp.asarray(_ROUGHNESS_GRID))
-    cost, ps, pd = jax.vmap(profile, out_axes=(1, 1, 1))(logs)
-    best = jnp.argmin(cost, axis=1)
-    ps_best = jnp.take_along_axis(ps, best[:, None], 1)[:, 0]
-    pd_best = jnp.take_along_axis(pd, best[:, None, None], 1)[:, 0]
-    return pd_best, jnp.log(jnp.maximum(ps_best, 1e-12)), logs[best]
+    def keep_best(best, log_r):  # a scan, not a vmap: one grid value in memory at a time
+        cost, ps, pd = profile(log_r)
+        better = cost < best[0]
+        return (jnp.where(better, cost, best[0]), jnp.where(better, ps, best[1]),
+                jnp.where(better[:, None], pd, best[2]), jnp.where(better, log_r, best[3])), None
+
+    n = e.shape[0]
+    init = (jnp.full(n, jnp.inf), jnp.zeros(n), jnp.zeros((n, 3)), jnp.zeros(n))
+    (_, ps, pd, log_r), _ = jax.lax.scan(keep_best, init, jnp.log(jnp.asarray(_ROUGHNESS_GRID)))
+    return pd, jnp.log(jnp.maximum(ps, 1e-12)), log_r
 
 
 def _refit_diffuse(model, data, ln_ps, ln_rough, w):
@@ -317,20 +321,137 @@ def _bucket(n: int, step: int) -> int:
     return max(step, -(-n // step) * step)
 
 
-def _pad_rows(rows: dict) -> dict:
+_CHUNK = 4000  # rows per lax.map step: keeps the working set in cache (not a power of two)
+
+
+def _pad_rows(rows: dict) -> tuple[dict, int]:
     """Pad rows and observations with unused entries to bucketed sizes, so that
-    scans of similar size reuse one compilation (rows to multiples of 1000, or of
-    10000 past 20000; observations to multiples of 4)."""
+    scans of similar size reuse one compilation: observations to a multiple of 4,
+    rows to a multiple of the chunk (itself a multiple of 500, at most 4000).
+    Returns the padded rows and the chunk size."""
     n, m = np.shape(rows["use"])
-    n_pad = _bucket(n, 1000 if n <= 20_000 else 10_000)
-    m_pad = _bucket(m, 4)
+    chunk = min(_CHUNK, _bucket(n, 500))
+    n_pad, m_pad = _bucket(n, chunk), _bucket(m, 4)
     out = {}
     for key, value in rows.items():
         value = np.asarray(value)
         widths = [(0, n_pad - n), (0, m_pad - m)] + [(0, 0)] * (value.ndim - 2)
         fill = T_INVALID if key == "classes" else (1.0 if key in ("cos_i", "cos_o") else 0)
         out[key] = np.pad(value, widths, constant_values=fill)
-    return out
+    return out, chunk
+
+
+def _start(pd, ln_ps, ln_rough):
+    # Log parameters cannot leave 0: start every albedo at >= 0.1 %.
+    return jnp.concatenate([jnp.log(jnp.maximum(pd, 1e-3)), ln_ps[:, None], ln_rough[:, None]], axis=1)
+
+
+def _lobe_and_slope(model, ln_rough, cos_i, cos_o, theta_r):
+    """Unit-ps specular BRDF `g` and `d ln g / d ln roughness`, per sample."""
+    _, spec_fn = brdf.MODELS[model]
+    g = spec_fn(1.0, ln_rough, cos_i, cos_o, theta_r)
+    r2 = jnp.exp(2.0 * ln_rough)
+    if model == "torrance-sparrow":
+        slope = theta_r**2 / r2
+    else:
+        c = jnp.maximum(jnp.cos(theta_r), brdf.COS_FLOOR)
+        slope = 2.0 * (jnp.sin(theta_r) / c) ** 2 / r2 - 2.0
+    return g, slope
+
+
+def _analytic_lm_row(model, steps):
+    """Fixed-step LM for one row with the Jacobian written out.
+
+    The model `y_cj = E_j (pd_c / pi + ps g_j)` has a structured Jacobian in
+    (ln pd_rgb, ln ps, ln roughness): each pd column touches one channel only, so
+    `J^T J` and `J^T r` are short weighted sums over the samples.
+    """
+
+    def cost_of(p, d):
+        g, _ = _lobe_and_slope(model, p[4], d["cos_i"], d["cos_o"], d["theta_r"])
+        pred = d["e"][:, None] * (jnp.exp(p[:3])[None] / jnp.pi + (jnp.exp(p[3]) * g)[:, None])
+        r = jnp.where(d["use"][:, None], (d["y"] - pred) * d["w"], 0.0)
+        return jnp.sum(r * r)
+
+    def row(p0, d):
+        ww = jnp.where(d["use"][:, None], d["w"] ** 2, 0.0)  # (M, 3)
+        e = d["e"]
+
+        def body(_, state):
+            p, lam, cost = state
+            pd, ps = jnp.exp(p[:3]), jnp.exp(p[3])
+            g, slope = _lobe_and_slope(model, p[4], d["cos_i"], d["cos_o"], d["theta_r"])
+            a = e[:, None] * pd[None] / jnp.pi  # (M, 3) d pred / d ln pd_c
+            b = e * ps * g  # (M,) d pred / d ln ps (all channels)
+            c = b * slope  # (M,) d pred / d ln roughness
+            r = d["y"] - a - b[:, None]  # unweighted residual (M, 3)
+            jtj = jnp.zeros((5, 5))
+            pdpd = jnp.sum(ww * a * a, 0)
+            pdps = jnp.sum(ww * a * b[:, None], 0)
+            pdro = jnp.sum(ww * a * c[:, None], 0)
+            wsum = jnp.sum(ww, 1)
+            jtj = jtj.at[jnp.arange(3), jnp.arange(3)].set(pdpd)
+            jtj = jtj.at[:3, 3].set(pdps).at[3, :3].set(pdps)
+            jtj = jtj.at[:3, 4].set(pdro).at[4, :3].set(pdro)
+            jtj = jtj.at[3, 3].set(jnp.sum(wsum * b * b)).at[4, 4].set(jnp.sum(wsum * c * c))
+            psro = jnp.sum(wsum * b * c)
+            jtj = jtj.at[3, 4].set(psro).at[4, 3].set(psro)
+            grad = jnp.concatenate([jnp.sum(ww * a * r, 0),
+                                    jnp.stack([jnp.sum(ww * b[:, None] * r), jnp.sum(ww * c[:, None] * r)])])
+            scale = jnp.diag(jtj) + 1e-12
+            step = spd_solve(jtj + lam * jnp.diag(scale) + 1e-15 * jnp.eye(5), grad)
+            step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
+            p_new = p + step
+            cost_new = cost_of(p_new, d)
+            ok = jnp.isfinite(cost_new) & (cost_new < cost)
+            return jnp.where(ok, p_new, p), jnp.where(ok, lam / 3.0, lam * 10.0), jnp.where(ok, cost_new, cost)
+
+        p, _, cost = jax.lax.fori_loop(0, steps, body, (p0, 1e-3, cost_of(p0, d)))
+        return p, cost
+
+    return row
+
+
+def _fit_chunk(rows, noise_floor, model, paper, solver, steps):
+    """Closed forms, two-start polish and covariance for one chunk of rows."""
+    pd0, has_diff = _diffuse_init(rows["y"], rows["e"], rows["use"], rows["classes"], rows["theta_r"], paper)
+    ln_ps0, ln_rough0, spec_ok, n_spec = _specular_init(model, rows, pd0, paper)
+    w = _noise_weights(rows["y"], rows["use"], noise_floor)
+    lm_data = {k: rows[k] for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
+    lm_data["w"] = w
+    residual = _make_residual(model)
+    p0 = _start(pd0, ln_ps0, ln_rough0)
+    if paper:
+        params = p0
+    else:
+        # Two starts per row -- the closed form and the roughness grid -- polished
+        # together; the lower final cost wins (broad, bright lobes have false minima).
+        starts = jnp.concatenate([p0, _start(*_grid_init(model, rows, w))])
+        both = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a]), lm_data)
+        if solver == "lm":
+            polished, cost = jax.vmap(_analytic_lm_row(model, steps))(starts, both)
+        else:
+            polished = _solve_optimistix(residual, starts, both, steps)
+            cost = jax.vmap(lambda p, d: jnp.sum(residual(p, d) ** 2))(polished, both)
+        n = p0.shape[0]
+        cost = jnp.where(jnp.all(jnp.isfinite(polished), axis=1), cost, jnp.inf)
+        params = jnp.where((cost[n:] < cost[:n])[:, None], polished[n:], polished[:n])
+        spec_ok = spec_ok | jnp.isfinite(jnp.minimum(cost[:n], cost[n:]))
+    params = jnp.where(jnp.all(jnp.isfinite(params), axis=1, keepdims=True), params, p0)
+    # Rows the data cannot pin down may wander; keep every exp() finite (they stay flagged).
+    params = jnp.clip(params, jnp.array([[_LN_FLOOR] * 4 + [np.log(1e-4)]]),
+                      jnp.array([[np.log(10.0)] * 4 + [np.log(np.pi / 2)]]))
+    cov = covariance(residual, params, lm_data, 3 * rows["use"].sum(1))
+    return {"params": params, "cov": cov, "spec_ok": spec_ok, "n_spec": n_spec, "has_diff": has_diff, "w": w}
+
+
+@partial(jax.jit, static_argnames=("chunk", "model", "paper", "solver", "steps"))
+def _fit_padded(rows, noise_floor, chunk, model, paper, solver, steps):
+    """`_fit_chunk` over all rows, `lax.map` over chunks of `chunk` rows."""
+    n = rows["use"].shape[0]
+    split = jax.tree_util.tree_map(lambda a: a.reshape(n // chunk, chunk, *a.shape[1:]), rows)
+    out = jax.lax.map(lambda r: _fit_chunk(r, noise_floor, model, paper, solver, steps), split)
+    return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
 
 
 class RowFit(dict):
@@ -346,55 +467,21 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     quantisation step / sqrt(12)).
     """
     n_rows, n_obs = np.shape(rows["use"])
-    jrows = {k: jnp.asarray(v) for k, v in _pad_rows(rows).items()}
-    pd0, has_diff = _diffuse_init(jrows["y"], jrows["e"], jrows["use"], jrows["classes"], jrows["theta_r"],
-                                  options.paper)
-    ln_ps0, ln_rough0, spec_ok, n_spec = _specular_init(options.model, jrows, pd0, options.paper)
-    w = _noise_weights(jrows["y"], jrows["use"], noise_floor)
-    lm_data = {k: jrows[k] for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
-    lm_data["w"] = w
-    residual = _make_residual(options.model)
-
-    def start(pd, ln_ps, ln_rough):
-        # Log parameters cannot leave 0: start every albedo at >= 0.1 %.
-        return jnp.concatenate([jnp.log(jnp.maximum(pd, 1e-3)), ln_ps[:, None], ln_rough[:, None]], axis=1)
-
-    p0 = start(pd0, ln_ps0, ln_rough0)
-    if options.paper:
-        params = p0
-    else:
-        # Two starts per row -- the closed form and the roughness grid -- polished
-        # together; the lower final cost wins (broad, bright lobes have false minima).
-        p_grid = start(*_grid_init(options.model, jrows, w))
-        starts = jnp.concatenate([p0, p_grid])
-        both = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a]), lm_data)
-        if options.solver == "lm":
-            out = solve_rows(residual, starts, both, options.steps)
-            polished, cost = out.params, out.cost
-        else:
-            polished = _solve_optimistix(residual, starts, both, options.steps)
-            cost = jax.vmap(lambda p, d: jnp.sum(residual(p, d) ** 2))(polished, both)
-        n = p0.shape[0]
-        cost = jnp.where(jnp.all(jnp.isfinite(polished), axis=1), cost, jnp.inf)
-        params = jnp.where((cost[n:] < cost[:n])[:, None], polished[n:], polished[:n])
-        spec_ok = spec_ok | jnp.isfinite(jnp.minimum(cost[:n], cost[n:]))
-    params = jnp.where(jnp.all(jnp.isfinite(params), axis=1, keepdims=True), params, p0)
-    # Rows the data cannot pin down may wander; keep every exp() finite (they stay flagged).
-    params = jnp.clip(params, jnp.array([[_LN_FLOOR] * 4 + [np.log(1e-4)]]),
-                      jnp.array([[np.log(10.0)] * 4 + [np.log(np.pi / 2)]]))
-    cov = covariance(residual, params, lm_data, 3 * jrows["use"].sum(1))
-    params, cov = np.asarray(params)[:n_rows], np.asarray(cov)[:n_rows]
-    spec_ok, n_spec, has_diff = (np.asarray(a)[:n_rows] for a in (spec_ok, n_spec, has_diff))
-    w = w[:n_rows, :n_obs]
+    padded, chunk = _pad_rows(rows)
+    out = _fit_padded({k: jnp.asarray(v) for k, v in padded.items()}, float(noise_floor), chunk,
+                      options.model, options.paper, options.solver, options.steps)
+    params, cov = np.asarray(out["params"])[:n_rows], np.asarray(out["cov"])[:n_rows]
+    spec_ok, n_spec, has_diff = (np.asarray(out[k])[:n_rows] for k in ("spec_ok", "n_spec", "has_diff"))
+    w = out["w"][:n_rows, :n_obs]
     var = np.diagonal(cov, axis1=1, axis2=2)
     sd_log = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
     # The paper needs two T_spec samples; the full-model fit can also pin the lobe down
     # from T_none samples, so identifiability is judged on the fit's own uncertainty.
-    enough = np.asarray(n_spec) >= 2 if options.paper else np.asarray(rows["use"]).sum(1) >= 3
-    identifiable = enough & np.asarray(spec_ok) & np.all(np.isfinite(params), 1) \
+    enough = n_spec >= 2 if options.paper else np.asarray(rows["use"]).sum(1) >= 3
+    identifiable = enough & spec_ok & np.all(np.isfinite(params), 1) \
         & (sd_log[:, 3] < 1.0 / options.min_snr) & (sd_log[:, 4] < 1.0)
-    return RowFit(params=params, sd_log=sd_log, identifiable=identifiable,
-                  has_diffuse_sample=np.asarray(has_diff), weights=w)
+    return RowFit(params=params, sd_log=sd_log, identifiable=identifiable, has_diffuse_sample=has_diff,
+                  weights=w)
 
 
 def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None) -> Estimate:
