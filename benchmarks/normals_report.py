@@ -39,16 +39,13 @@ import numpy as np
 
 from data_synth.rangescan import make_range_image
 from jaxrefl.preprocess import (
+    angular_error_deg,
     face_averaged_normals,
     mesh_quadratic_normals,
     quadratic_fit,
     range_image_to_mesh,
     remove_outliers,
 )
-
-
-def _angle_deg(a, b):
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
 
 
 def _timed(fn):
@@ -115,8 +112,8 @@ def run_one(name: str, noise: float, width: int, seed: int):
     edge = common & _edge_pixels(r_true, spacing)
     rows = []
     for label, n in normals.items():
-        e = _angle_deg(n[common], true_normals[common])
-        ee = _angle_deg(n[edge], true_normals[edge])
+        e = angular_error_deg(n[common], true_normals[common])
+        ee = angular_error_deg(n[edge], true_normals[edge])
         rows.append(dict(method=label, median=float(np.median(e)), p90=float(np.percentile(e, 90)),
                          edge_median=float(np.median(ee)) if len(ee) else float("nan"),
                          seconds=seconds[label]))

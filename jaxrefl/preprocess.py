@@ -32,6 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = [
+    "angular_error_deg",
     "RangeImage",
     "face_averaged_normals",
     "mesh_quadratic_normals",
@@ -588,6 +589,11 @@ def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     length = np.linalg.norm(x, axis=-1)
     ok = np.isfinite(length) & (length > 0)
     return np.where(ok[..., None], x / np.where(ok, length, 1.0)[..., None], 0.0), ok
+
+
+def angular_error_deg(a, b) -> np.ndarray:
+    """Angle [deg] between unit vectors `a` and `b` `(..., 3)`, via atan2 (accurate near 0)."""
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
 
 
 def face_averaged_normals(vertices, faces) -> np.ndarray:

@@ -18,6 +18,22 @@ def jaxrefl(*args, cwd=None):
                           text=True, cwd=cwd, env=env, timeout=600)
 
 
+def corrupted_bundle(tmp_path, obj, lights, corrupt):
+    """A synthetic bundle written, then damaged by `corrupt(dict_of_arrays)`; its path."""
+    scan = tmp_path / "s.npz"
+    assert jaxrefl("synth", obj, "--out", scan, "--resolution", 20, "--lights", lights).returncode == 0
+    data = dict(np.load(scan))
+    corrupt(data)
+    np.savez(tmp_path / "bad.npz", **data)
+    return tmp_path / "bad.npz"
+
+
+def assert_one_line_error(result, field):
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and field in lines[0] and "Traceback" not in result.stderr
+
+
 def test_synth_render_info(tmp_path):
     scan = tmp_path / "e.npz"
     r = jaxrefl("synth", "E", "--out", scan, "--resolution", 24, "--lights", "4,5", "--gi", "--samples", 4,
@@ -43,16 +59,9 @@ def test_synth_render_info(tmp_path):
     (lambda d: d.update(vertices=d["vertices"] * np.nan), "vertices"),
 ])
 def test_bad_input_is_one_line_naming_the_field(tmp_path, corrupt, field):
-    scan = tmp_path / "s.npz"
-    assert jaxrefl("synth", "C", "--out", scan, "--resolution", 20, "--lights", "0").returncode == 0
-    data = dict(np.load(scan))
-    corrupt(data)
-    np.savez(tmp_path / "bad.npz", **data)
+    bad = corrupted_bundle(tmp_path, "C", "0", corrupt)
     out = tmp_path / "never.png"
-    r = jaxrefl("render", tmp_path / "bad.npz", "--out", out)
-    assert r.returncode == 2
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and field in lines[0] and "Traceback" not in r.stderr
+    assert_one_line_error(jaxrefl("render", bad, "--out", out), field)
     assert not out.exists()
 
 
@@ -143,14 +152,7 @@ BAD_ESTIMATE_INPUTS = [
 
 @pytest.mark.parametrize("field, corrupt", BAD_ESTIMATE_INPUTS)
 def test_estimate_bad_input(tmp_path, field, corrupt):
-    scan = tmp_path / "s.npz"
-    assert jaxrefl("synth", "V", "--out", scan, "--resolution", 20, "--lights", "24,25").returncode == 0
-    data = dict(np.load(scan))
-    corrupt(data)
-    np.savez(tmp_path / "bad.npz", **data)
+    bad = corrupted_bundle(tmp_path, "V", "24,25", corrupt)
     out = tmp_path / "result.npz"
-    r = jaxrefl("estimate", tmp_path / "bad.npz", "--out", out)
-    assert r.returncode != 0
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and field in lines[0] and "Traceback" not in r.stderr
+    assert_one_line_error(jaxrefl("estimate", bad, "--out", out), field)
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["bad.npz", "s.npz"]

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from data_synth.rangescan import make_range_image
 from jaxrefl.preprocess import (
     RangeImage,
+    angular_error_deg,
     face_averaged_normals,
     mesh_quadratic_normals,
     quadratic_fit,
@@ -17,11 +18,6 @@ from jaxrefl.preprocess import (
 )
 
 from .helpers import sphere, unit
-
-
-def angle_deg(a, b):
-    """Angle between unit vectors [deg], via atan2 (accurate near 0)."""
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
 
 
 def grid(width=256, height=96, y_top=0.06, y_bottom=-0.06, span=2 * np.pi):
@@ -153,7 +149,7 @@ def test_cylinder_and_sphere_normals_noise_free(adaptive):
     img, truth = cylinder_image(0.05)
     p, n, valid, _ = quadratic_fit(img, adaptive=adaptive)
     assert valid.all()  # the seam wraps: no border in theta, top and bottom fit one-sided
-    assert angle_deg(n, truth).max() < 1e-6
+    assert angular_error_deg(n, truth).max() < 1e-6
     # Off-axis sphere (the axis inside it): r depends on theta and y, all columns wrap.
     c = np.array([0.01, 0.0, 0.01])
     img, truth = sphere_image(0.05, centre=c, width=512, height=128, y_top=0.055, y_bottom=-0.055)
@@ -165,7 +161,7 @@ def test_cylinder_and_sphere_normals_noise_free(adaptive):
     ray = -unit(img.points() * np.array([1.0, 0.0, 1.0]))
     facing = valid & (-np.sum(truth * ray, -1) > np.cos(np.radians(60)))
     assert facing.sum() > 0.7 * img.valid.sum()
-    assert angle_deg(n[facing], truth[facing]).max() < 0.5
+    assert angular_error_deg(n[facing], truth[facing]).max() < 0.5
     np.testing.assert_allclose(np.linalg.norm(p[facing] - c, axis=-1), 0.05, atol=1e-5)
 
 
@@ -195,14 +191,14 @@ def test_adaptive_windows_avoid_a_depth_discontinuity():
         _, n_fix, v_fix, _ = quadratic_fit(img, adaptive=False)
         _, n_ad, v_ad, _ = quadratic_fit(img, adaptive=True)
         assert v_fix.all() and v_ad.all()
-        e_fix = angle_deg(n_fix, truth)[near]
-        e_ad = angle_deg(n_ad, truth)[near]
+        e_fix = angular_error_deg(n_fix, truth)[near]
+        e_ad = angular_error_deg(n_ad, truth)[near]
         assert np.mean(e_ad) < 0.2 * np.mean(e_fix)
         assert np.median(e_ad) < (1e-6 if noise == 0 else 2.0)
     # Yokoya & Levine's rule as written (smallest residual) also avoids the step.
     img = RangeImage(r, theta, y)
     _, n_res, _, _ = quadratic_fit(img, select="residual")
-    assert angle_deg(n_res, truth).max() < 1e-6
+    assert angular_error_deg(n_res, truth).max() < 1e-6
 
 
 # -- outliers -------------------------------------------------------------------------
@@ -252,7 +248,7 @@ def test_mesh_of_full_circle_is_closed_in_theta_and_outward():
     assert np.all(np.sum(m.face_normals * centroid, -1) > 0)  # outward (away from the axis)
     fn = face_averaged_normals(v, f)
     np.testing.assert_allclose(np.linalg.norm(fn, axis=1), 1.0)
-    assert angle_deg(fn, unit(v)).max() < 5.0
+    assert angular_error_deg(fn, unit(v)).max() < 5.0
 
 
 def test_mesh_partial_circle_and_depth_jump():
@@ -280,9 +276,9 @@ def test_mesh_quadratic_normals_beat_face_averaged_on_noisy_sphere():
     spikes = rng.random(len(v)) < 0.01
     noisy[spikes] += truth[spikes] * 5 * edge * rng.choice([-1.0, 1.0], (spikes.sum(), 1))
     clean = ~spikes
-    e_face = angle_deg(face_averaged_normals(noisy, f), truth)
+    e_face = angular_error_deg(face_averaged_normals(noisy, f), truth)
     dv, n, outlier = mesh_quadratic_normals(noisy, f)
-    e_quad = angle_deg(n, truth)
+    e_quad = angular_error_deg(n, truth)
     assert np.median(e_quad[clean]) < 0.5 * np.median(e_face[clean])
     assert np.percentile(e_quad, 90) < 0.5 * np.percentile(e_face, 90)
     assert (outlier & spikes).sum() >= 0.95 * spikes.sum()
@@ -295,7 +291,7 @@ def test_mesh_quadratic_normals_beat_face_averaged_on_noisy_sphere():
     assert np.isfinite(dv).all() and np.allclose(np.linalg.norm(n, axis=1), 1.0)
     # Noise-free: the fit is near exact and nothing is an outlier.
     dv0, n0, out0 = mesh_quadratic_normals(v, f, adaptive=False)
-    assert not out0.any() and angle_deg(n0, truth).max() < 0.1
+    assert not out0.any() and angular_error_deg(n0, truth).max() < 0.1
 
 
 # -- the key requirement: Object A ----------------------------------------------------
@@ -339,6 +335,6 @@ def test_quadratic_normals_beat_face_averaged_on_object_a(scan_a):
     n_face[pixel[:, 0], pixel[:, 1]] = face_averaged_normals(v, f)
     same = valid & np.isfinite(n_face).all(-1) & hit
     assert same.sum() > 0.9 * hit.sum()
-    e_quad = np.median(angle_deg(n_quad[same], tn[same]))
-    e_face = np.median(angle_deg(n_face[same], tn[same]))
+    e_quad = np.median(angular_error_deg(n_quad[same], tn[same]))
+    e_face = np.median(angular_error_deg(n_face[same], tn[same]))
     assert e_quad * 2 <= e_face, (e_quad, e_face)
