@@ -83,7 +83,7 @@ def run_one(name: str, noise: float, width: int, seed: int):
     outliers = dict(spikes=int(spikes.sum()), found=int((removed & spikes).sum()),
                     false=int((removed & ~spikes).sum()), returns=int(hit.sum()), seconds=t_out)
 
-    normals, valid, seconds = {}, {}, {}
+    normals, seconds = {}, {}
 
     def mesh_normals():
         v, f, pixel = range_image_to_mesh(cleaned)

@@ -113,7 +113,7 @@ def _add_estimate(sub):
     p.add_argument("--paper", action="store_true",
                    help="the paper's estimator: Eq. 5 single best diffuse sample, Eq. 7 from two samples")
     p.add_argument("--window", type=int, default=5, help="interpolation window W (a (W-1)/2-ring)")
-    p.add_argument("--steps", type=int, default=30, help="Levenberg-Marquardt steps")
+    p.add_argument("--steps", type=int, default=15, help="Levenberg-Marquardt steps")
     p.add_argument("--solver", choices=["lm", "optimistix"], default="lm")
     p.add_argument("--min-snr", type=float, default=3.0, help="ps / std(ps) needed to call it measured")
 

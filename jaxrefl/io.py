@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -96,10 +96,6 @@ class Scan:
         if self.saturation is not None:
             ok = ok & ~np.any(self.radiance >= self.saturation, axis=-1)
         return ok
-
-    def with_fields(self, **changes) -> Scan:
-        """A copy with some fields replaced (then validated)."""
-        return validate_scan(replace(self, **changes))
 
 
 # -- validation ------------------------------------------------------------------

@@ -14,10 +14,13 @@ Per point, from its classified samples (`classify`):
    `x = tan^2 theta_r`, `a = ln(ps / alpha^2)`, `b = 1 / alpha^2`. Two samples
    give the closed form; more give weighted least squares in the log domain.
 3. **Polish** — Levenberg-Marquardt on the full model over all valid samples
-   (`T_diff`, `T_spec`, `T_none`), parameters `(ln pd_rgb, ln ps, ln roughness)`,
-   residuals weighted by a noise model `sqrt((0.01 y)^2 + floor^2)`; all points
-   at once (`lm.solve_rows`: vmap inside one jit). Standard deviations from
-   the Gauss-Newton covariance at the solution.
+   (`T_diff`, `T_spec`, `T_none`), parameters `(pd_rgb, ps, ln roughness)` with
+   bounds `0 <= pd <= 1`, `ps >= 0` enforced by projection in every step,
+   residuals weighted by a noise model `sqrt((0.01 y)^2 + floor^2)`, from two
+   starts (the closed form, and the best of a roughness grid with pd and ps
+   solved linearly); the lower final cost wins. A fixed number of steps with
+   the Jacobian written out, all points at once (vmap, `lax.map` over chunks,
+   one jit). Standard deviations from the Gauss-Newton covariance.
 4. **Identifiability** — the specular part counts as measured when the point
    has two or more usable `T_spec` samples, the fit is finite, and `ps` stands
    `min_snr` standard deviations above 0 with roughness known to a factor
@@ -62,7 +65,7 @@ class LocalOptions:
 
     model: str = "torrance-sparrow"
     paper: bool = False
-    steps: int = 30
+    steps: int = 15
     window: int = 5
     min_snr: float = 3.0
     solver: str = "lm"
@@ -167,17 +170,17 @@ def quantisation_step(radiance, observed) -> float:
 # -- the full model per row --------------------------------------------------------------
 
 
-def _row_model(model, ln_pd, ln_ps, ln_rough, e, cos_i, cos_o, theta_r):
+def _row_model(model, pd, ps, ln_rough, e, cos_i, cos_o, theta_r):
     """Predicted radiance `(M, 3)` of one point."""
     full, _ = brdf.MODELS[model]
-    f = jax.vmap(full, in_axes=(None, None, None, 0, 0, 0))(jnp.exp(ln_pd), jnp.exp(ln_ps), ln_rough,
-                                                              cos_i, cos_o, theta_r)
+    f = jax.vmap(full, in_axes=(None, None, None, 0, 0, 0))(pd, ps, ln_rough, cos_i, cos_o, theta_r)
     return f * e[:, None]
 
 
 @lru_cache(maxsize=None)
 def _make_residual(model):
-    """The weighted residual of one row (cached: jit keys on the function's identity)."""
+    """The weighted residual of one row in `(pd_rgb, ps, ln roughness)` (cached: jit
+    keys on the function's identity)."""
 
     def residual(p, d):
         pred = _row_model(model, p[:3], p[3], p[4], d["e"], d["cos_i"], d["cos_o"], d["theta_r"])
@@ -257,7 +260,11 @@ def _grid_init(model, data, w):
     """
     _, spec_fn = brdf.MODELS[model]
     e, use, y = data["e"], data["use"], data["y"]
-    ww = jnp.where(use[..., None], w * w, 0.0)  # (N, M, 3)
+    # Softer weights than the fit's: with purely relative weights the dim tail samples
+    # make the profile so sharp in roughness that a grid step can miss its minimum.
+    row_max = jnp.max(jnp.where(use[..., None], y, 0.0), axis=(1, 2), keepdims=True)
+    soft = 1.0 / (y * y + (0.05 * row_max) ** 2 + 1e-300)
+    ww = jnp.where(use[..., None], jnp.minimum(w * w, soft), 0.0)  # (N, M, 3)
     a1 = (e / jnp.pi)[..., None]
     s11 = (ww * a1 * a1).sum(1)  # (N, 3)
     b1 = (ww * a1 * y).sum(1)
@@ -270,7 +277,7 @@ def _grid_init(model, data, w):
         den = s22.sum(1) - (s12 * s12 / s11_safe).sum(1)
         ps = (b2.sum(1) - (s12 * b1 / s11_safe).sum(1)) / jnp.where(den > 0, den, 1.0)
         ps = jnp.where(den > 0, jnp.maximum(ps, 0.0), 0.0)
-        pd = jnp.maximum((b1 - s12 * ps[:, None]) / s11_safe, 0.0)
+        pd = jnp.clip((b1 - s12 * ps[:, None]) / s11_safe, 0.0, 1.0)
         cost = (ww * (y - a1 * pd[:, None, :] - a2 * ps[:, None, None]) ** 2).sum((1, 2))
         return cost, ps, pd
 
@@ -342,8 +349,9 @@ def _pad_rows(rows: dict) -> tuple[dict, int]:
 
 
 def _start(pd, ln_ps, ln_rough):
-    # Log parameters cannot leave 0: start every albedo at >= 0.1 %.
-    return jnp.concatenate([jnp.log(jnp.maximum(pd, 1e-3)), ln_ps[:, None], ln_rough[:, None]], axis=1)
+    """Parameter rows `(pd_rgb, ps, ln roughness)`: reflectances linear (kept >= 0 by
+    projection in every step, so a channel at 0 can come back), roughness in logs."""
+    return jnp.concatenate([jnp.clip(pd, 0.0, 1.0), jnp.exp(ln_ps)[:, None], ln_rough[:, None]], axis=1)
 
 
 def _lobe_and_slope(model, ln_rough, cos_i, cos_o, theta_r):
@@ -360,48 +368,51 @@ def _lobe_and_slope(model, ln_rough, cos_i, cos_o, theta_r):
 
 
 def _analytic_lm_row(model, steps):
-    """Fixed-step LM for one row with the Jacobian written out.
+    """Fixed-step projected LM for one row with the Jacobian written out.
 
-    The model `y_cj = E_j (pd_c / pi + ps g_j)` has a structured Jacobian in
-    (ln pd_rgb, ln ps, ln roughness): each pd column touches one channel only, so
-    `J^T J` and `J^T r` are short weighted sums over the samples.
+    The model `y_cj = E_j (pd_c / pi + ps g_j)` is linear in `pd_rgb` and `ps` and
+    nonlinear only in `ln roughness`; each pd column touches one channel, so
+    `J^T J` and `J^T r` are short weighted sums over the samples. After each step
+    the reflectances are projected onto `>= 0` (bounds, not a clip of the result).
     """
 
     def cost_of(p, d):
         g, _ = _lobe_and_slope(model, p[4], d["cos_i"], d["cos_o"], d["theta_r"])
-        pred = d["e"][:, None] * (jnp.exp(p[:3])[None] / jnp.pi + (jnp.exp(p[3]) * g)[:, None])
+        pred = d["e"][:, None] * (p[:3][None] / jnp.pi + (p[3] * g)[:, None])
         r = jnp.where(d["use"][:, None], (d["y"] - pred) * d["w"], 0.0)
         return jnp.sum(r * r)
 
     def row(p0, d):
         ww = jnp.where(d["use"][:, None], d["w"] ** 2, 0.0)  # (M, 3)
         e = d["e"]
+        a = e / jnp.pi  # (M,) d pred / d pd_c (channel c only)
 
         def body(_, state):
             p, lam, cost = state
-            pd, ps = jnp.exp(p[:3]), jnp.exp(p[3])
             g, slope = _lobe_and_slope(model, p[4], d["cos_i"], d["cos_o"], d["theta_r"])
-            a = e[:, None] * pd[None] / jnp.pi  # (M, 3) d pred / d ln pd_c
-            b = e * ps * g  # (M,) d pred / d ln ps (all channels)
-            c = b * slope  # (M,) d pred / d ln roughness
-            r = d["y"] - a - b[:, None]  # unweighted residual (M, 3)
-            jtj = jnp.zeros((5, 5))
-            pdpd = jnp.sum(ww * a * a, 0)
-            pdps = jnp.sum(ww * a * b[:, None], 0)
-            pdro = jnp.sum(ww * a * c[:, None], 0)
+            b = e * g  # (M,) d pred / d ps (all channels)
+            c = b * p[3] * slope  # (M,) d pred / d ln roughness
+            r = d["y"] - a[:, None] * p[:3][None] - (b * p[3])[:, None]  # (M, 3)
             wsum = jnp.sum(ww, 1)
+            pdpd = jnp.sum(ww * (a * a)[:, None], 0)
+            pdps = jnp.sum(ww * (a * b)[:, None], 0)
+            pdro = jnp.sum(ww * (a * c)[:, None], 0)
+            psro = jnp.sum(wsum * b * c)
+            jtj = jnp.zeros((5, 5))
             jtj = jtj.at[jnp.arange(3), jnp.arange(3)].set(pdpd)
             jtj = jtj.at[:3, 3].set(pdps).at[3, :3].set(pdps)
             jtj = jtj.at[:3, 4].set(pdro).at[4, :3].set(pdro)
             jtj = jtj.at[3, 3].set(jnp.sum(wsum * b * b)).at[4, 4].set(jnp.sum(wsum * c * c))
-            psro = jnp.sum(wsum * b * c)
             jtj = jtj.at[3, 4].set(psro).at[4, 3].set(psro)
-            grad = jnp.concatenate([jnp.sum(ww * a * r, 0),
+            grad = jnp.concatenate([jnp.sum(ww * a[:, None] * r, 0),
                                     jnp.stack([jnp.sum(ww * b[:, None] * r), jnp.sum(ww * c[:, None] * r)])])
-            scale = jnp.diag(jtj) + 1e-12
-            step = spd_solve(jtj + lam * jnp.diag(scale) + 1e-15 * jnp.eye(5), grad)
+            scale = jnp.diag(jtj) + 1e-12 * (jnp.max(jnp.diag(jtj)) + 1e-300)
+            step = spd_solve(jtj + lam * jnp.diag(scale), grad)
             step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
             p_new = p + step
+            # Bounds: reflectances >= 0, albedo pd <= 1 (energy conservation; it also
+            # removes the false minima where a broad lobe is traded for pd > 1).
+            p_new = p_new.at[:4].set(jnp.maximum(p_new[:4], 0.0)).at[:3].set(jnp.minimum(p_new[:3], 1.0))
             cost_new = cost_of(p_new, d)
             ok = jnp.isfinite(cost_new) & (cost_new < cost)
             return jnp.where(ok, p_new, p), jnp.where(ok, lam / 3.0, lam * 10.0), jnp.where(ok, cost_new, cost)
@@ -438,9 +449,9 @@ def _fit_chunk(rows, noise_floor, model, paper, solver, steps):
         params = jnp.where((cost[n:] < cost[:n])[:, None], polished[n:], polished[:n])
         spec_ok = spec_ok | jnp.isfinite(jnp.minimum(cost[:n], cost[n:]))
     params = jnp.where(jnp.all(jnp.isfinite(params), axis=1, keepdims=True), params, p0)
-    # Rows the data cannot pin down may wander; keep every exp() finite (they stay flagged).
-    params = jnp.clip(params, jnp.array([[_LN_FLOOR] * 4 + [np.log(1e-4)]]),
-                      jnp.array([[np.log(10.0)] * 4 + [np.log(np.pi / 2)]]))
+    # Rows the data cannot pin down may wander; keep them in range (they stay flagged).
+    params = jnp.clip(params, jnp.array([[0.0] * 4 + [np.log(1e-4)]]),
+                      jnp.array([[10.0] * 4 + [np.log(np.pi / 2)]]))
     cov = covariance(residual, params, lm_data, 3 * rows["use"].sum(1))
     return {"params": params, "cov": cov, "spec_ok": spec_ok, "n_spec": n_spec, "has_diff": has_diff, "w": w}
 
@@ -455,9 +466,10 @@ def _fit_padded(rows, noise_floor, chunk, model, paper, solver, steps):
 
 
 class RowFit(dict):
-    """`fit_rows` output (a dict): `params` `(N, 5)` = (ln pd_rgb, ln ps, ln roughness),
-    `sd_log` `(N, 5)` their standard deviations, `identifiable` `(N,)` (specular part
-    measured), `has_diffuse_sample` `(N,)`, `weights` `(N, M, 3)` residual weights."""
+    """`fit_rows` output (a dict): `pd` `(N, 3)`, `ps` `(N,)`, `roughness` `(N,)` [rad]
+    and their standard deviations `std_pd`, `std_ps`, `std_roughness` (inf where
+    unknown), `identifiable` `(N,)` (specular part measured), `has_diffuse_sample`
+    `(N,)`, `weights` `(N, M, 3)` residual weights."""
 
 
 def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: float = 0.0) -> RowFit:
@@ -472,16 +484,18 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
                       options.model, options.paper, options.solver, options.steps)
     params, cov = np.asarray(out["params"])[:n_rows], np.asarray(out["cov"])[:n_rows]
     spec_ok, n_spec, has_diff = (np.asarray(out[k])[:n_rows] for k in ("spec_ok", "n_spec", "has_diff"))
-    w = out["w"][:n_rows, :n_obs]
     var = np.diagonal(cov, axis1=1, axis2=2)
-    sd_log = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
+    sd = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
+    rough = np.exp(params[:, 4])
     # The paper needs two T_spec samples; the full-model fit can also pin the lobe down
     # from T_none samples, so identifiability is judged on the fit's own uncertainty.
     enough = n_spec >= 2 if options.paper else np.asarray(rows["use"]).sum(1) >= 3
     identifiable = enough & spec_ok & np.all(np.isfinite(params), 1) \
-        & (sd_log[:, 3] < 1.0 / options.min_snr) & (sd_log[:, 4] < 1.0)
-    return RowFit(params=params, sd_log=sd_log, identifiable=identifiable, has_diffuse_sample=has_diff,
-                  weights=w)
+        & (params[:, 3] > options.min_snr * sd[:, 3]) & (sd[:, 4] < 1.0)
+    std_rough = np.where(np.isinf(sd[:, 4]), np.inf, rough * np.where(np.isinf(sd[:, 4]), 0.0, sd[:, 4]))
+    return RowFit(pd=params[:, :3], ps=params[:, 3], roughness=rough, std_pd=sd[:, :3], std_ps=sd[:, 3],
+                  std_roughness=std_rough, identifiable=identifiable, has_diffuse_sample=has_diff,
+                  weights=out["w"][:n_rows, :n_obs])
 
 
 def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None) -> Estimate:
@@ -503,19 +517,17 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     timings["fit"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    params, sd_log, identifiable = fit["params"], fit["sd_log"], fit["identifiable"]
+    identifiable = fit["identifiable"]
     observed_any = rows["use"].any(1)
-    pd = np.exp(params[:, :3])
-    ps, rough = np.exp(params[:, 3]), np.exp(params[:, 4])
-    # Delta method from the log parameters; an unknown (inf) log-std stays inf.
-    scaled = np.where(np.isinf(sd_log), np.inf, np.exp(params) * np.where(np.isinf(sd_log), 0.0, sd_log))
-    std_pd, std_ps, std_rough = scaled[:, :3], scaled[:, 3], scaled[:, 4]
+    pd, ps, rough = fit["pd"].copy(), fit["ps"].copy(), fit["roughness"].copy()
+    std_pd, std_ps, std_rough = fit["std_pd"].copy(), fit["std_ps"].copy(), fit["std_roughness"].copy()
     status = np.full(scan.n_points, MEASURED, np.int8)
 
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
     need_spec = ~identifiable
     if identifiable.any():
-        filled = window_fill(params[:, 3:5], identifiable, adjacency, options.window)
+        logs = np.c_[np.log(np.maximum(ps, 1e-12)), np.log(rough)]
+        filled = window_fill(logs, identifiable, adjacency, options.window)
         ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
         status[filled.window] = INTERPOLATED
         status[filled.diffused] = UNRESOLVED

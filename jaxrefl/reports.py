@@ -104,7 +104,7 @@ def table1(out_dir: str, resolution: int = 64, objects=("A", "B", "C", "D"), th1
     ]
     if exact:
         lines += [
-            f"| Exact minimum for the same target (greedy: above) | "
+            "| Exact minimum for the same target (greedy: above) | "
             + " | ".join(str(r["exact_at_target"]) for r in rows) + " |",
             "| Full cover of the limit: greedy / exact minimum | "
             + " | ".join(f"{r['greedy_full_cover']} / {r['exact_full_cover']}" for r in rows) + " |",
