@@ -258,39 +258,53 @@ def _grid_init(model, data, w):
 
     **Returns:** `(pd (N, 3), ln_ps (N,), ln_rough (N,))`.
     """
-    _, spec_fn = brdf.MODELS[model]
     e, use, y = data["e"], data["use"], data["y"]
     # Softer weights than the fit's: with purely relative weights the dim tail samples
     # make the profile so sharp in roughness that a grid step can miss its minimum.
     row_max = jnp.max(jnp.where(use[..., None], y, 0.0), axis=(1, 2), keepdims=True)
     soft = 1.0 / (y * y + (0.05 * row_max) ** 2 + 1e-300)
     ww = jnp.where(use[..., None], jnp.minimum(w * w, soft), 0.0)  # (N, M, 3)
-    a1 = (e / jnp.pi)[..., None]
-    s11 = (ww * a1 * a1).sum(1)  # (N, 3)
-    b1 = (ww * a1 * y).sum(1)
-    spec_rows = jax.vmap(jax.vmap(spec_fn, in_axes=(None, None, 0, 0, 0)), in_axes=(None, None, 0, 0, 0))
+    a1 = e / jnp.pi  # (N, M)
+    wa, wy = ww * a1[..., None], ww * y  # (N, M, 3)
+    s11 = jnp.einsum("nmc,nm->nc", wa, a1)
+    b1 = jnp.einsum("nmc,nm->nc", wy, a1)
+    yy = jnp.sum(wy * y, 1)
+    s11_safe = jnp.maximum(s11, 1e-300)
+    # The unit lobe factorises as amp * exp(-x * kappa(roughness)) * scale(roughness):
+    # only one exp per sample and grid value is left inside the scan.
+    ci = jnp.maximum(data["cos_i"], brdf.COS_FLOOR)
+    co = jnp.maximum(data["cos_o"], brdf.COS_FLOOR)
+    if model == "torrance-sparrow":
+        amp, x = e / (ci * co), data["theta_r"] ** 2
+    else:
+        c = jnp.maximum(jnp.cos(data["theta_r"]), brdf.COS_FLOOR)
+        amp, x = e / (4.0 * jnp.pi * jnp.sqrt(ci * co)), (jnp.sin(data["theta_r"]) / c) ** 2
+    amp = jnp.where(use, amp, 0.0)
 
     def profile(log_r):
-        a2 = (e * spec_rows(1.0, log_r, data["cos_i"], data["cos_o"], data["theta_r"]))[..., None]
-        s12, s22, b2 = (ww * a1 * a2).sum(1), (ww * a2 * a2).sum(1), (ww * a2 * y).sum(1)
-        s11_safe = jnp.maximum(s11, 1e-300)
+        r2 = jnp.exp(2.0 * log_r)
+        kappa, scale = (0.5 / r2, 1.0) if model == "torrance-sparrow" else (1.0 / r2, 1.0 / r2)
+        a2 = amp * jnp.exp(-jnp.minimum(x * kappa, 700.0)) * scale  # (N, M) = E * unit lobe
+        s12 = jnp.einsum("nmc,nm->nc", wa, a2)
+        s22 = jnp.einsum("nmc,nm->nc", ww, a2 * a2)
+        b2 = jnp.einsum("nmc,nm->nc", wy, a2)
         den = s22.sum(1) - (s12 * s12 / s11_safe).sum(1)
         ps = (b2.sum(1) - (s12 * b1 / s11_safe).sum(1)) / jnp.where(den > 0, den, 1.0)
         ps = jnp.where(den > 0, jnp.maximum(ps, 0.0), 0.0)
         pd = jnp.clip((b1 - s12 * ps[:, None]) / s11_safe, 0.0, 1.0)
-        cost = (ww * (y - a1 * pd[:, None, :] - a2 * ps[:, None, None]) ** 2).sum((1, 2))
+        # The weighted squared residual, expanded in the sums above (no (N, M, 3) temporaries).
+        p2 = ps[:, None]
+        cost = jnp.sum(yy - 2 * pd * b1 - 2 * p2 * b2 + pd * pd * s11 + 2 * pd * p2 * s12 + p2 * p2 * s22, 1)
         return cost, ps, pd
 
-    def keep_best(best, log_r):  # a scan, not a vmap: one grid value in memory at a time
-        cost, ps, pd = profile(log_r)
-        better = cost < best[0]
-        return (jnp.where(better, cost, best[0]), jnp.where(better, ps, best[1]),
-                jnp.where(better[:, None], pd, best[2]), jnp.where(better, log_r, best[3])), None
-
-    n = e.shape[0]
-    init = (jnp.full(n, jnp.inf), jnp.zeros(n), jnp.zeros((n, 3)), jnp.zeros(n))
-    (_, ps, pd, log_r), _ = jax.lax.scan(keep_best, init, jnp.log(jnp.asarray(_ROUGHNESS_GRID)))
-    return pd, jnp.log(jnp.maximum(ps, 1e-12)), log_r
+    # All grid values at once: rows arrive in chunks (`_CHUNK`), so the (grid, rows,
+    # samples) temporaries stay small, and one wide op beats a loop of small ones.
+    logs = jnp.log(jnp.asarray(_ROUGHNESS_GRID))
+    cost, ps, pd = jax.vmap(profile, out_axes=(1, 1, 1))(logs)
+    best = jnp.argmin(cost, axis=1)
+    ps = jnp.take_along_axis(ps, best[:, None], 1)[:, 0]
+    pd = jnp.take_along_axis(pd, best[:, None, None], 1)[:, 0]
+    return pd, jnp.log(jnp.maximum(ps, 1e-12)), logs[best]
 
 
 def _refit_diffuse(model, data, ln_ps, ln_rough, w):
