@@ -116,6 +116,8 @@ def _add_estimate(sub):
     p.add_argument("--steps", type=int, default=15, help="Levenberg-Marquardt steps")
     p.add_argument("--solver", choices=["lm", "optimistix"], default="lm")
     p.add_argument("--min-snr", type=float, default=3.0, help="ps / std(ps) needed to call it measured")
+    p.add_argument("--pool", action="store_true",
+                   help="experimental: points without their own lobe share it with same-colour neighbours")
 
 
 def _add_info(sub):
@@ -224,7 +226,7 @@ def cmd_estimate(args) -> int:
     from .result import save_result, truth_errors
 
     options = LocalOptions(model=args.model, paper=args.paper, steps=args.steps, window=args.window,
-                           min_snr=args.min_snr, solver=args.solver)
+                           min_snr=args.min_snr, solver=args.solver, pool=args.pool)
     t0 = time.perf_counter()
     scan = load_scan(args.scan)
     load_seconds = time.perf_counter() - t0

@@ -48,6 +48,7 @@ from . import brdf
 from .classify import T_DIFF, T_INVALID, T_SPEC, Thresholds, classify_scan
 from .fill import vertex_adjacency, window_fill
 from .lm import covariance, spd_solve
+from .pool import pooled_specular
 from .raycast import RayCaster
 from .rig import observation_geometry
 
@@ -69,6 +70,9 @@ class LocalOptions:
     window: int = 5
     min_snr: float = 3.0
     solver: str = "lm"
+    pool: bool = False
+    pool_neighbours: int = 12
+    pool_tau: float = 0.05
     thresholds: Thresholds = field(default_factory=Thresholds)
 
     def __post_init__(self):
@@ -538,10 +542,20 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     status = np.full(scan.n_points, MEASURED, np.int8)
 
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
-    need_spec = ~identifiable
-    if identifiable.any():
+    if options.pool and not options.paper:
+        # Points that could not measure their own lobe share it with same-material
+        # neighbours (`pool`); they count as interpolated, with finite std.
+        pooled = pooled_specular(rows, pd, scan.vertices, options.model, k=options.pool_neighbours,
+                                 tau=options.pool_tau, min_snr=options.min_snr)
+        use_pool = ~identifiable & pooled["identifiable"] & observed_any
+        ps[use_pool], rough[use_pool] = pooled["ps"][use_pool], pooled["roughness"][use_pool]
+        std_ps_pool, std_rough_pool = pooled["std_ps"][use_pool], pooled["std_roughness"][use_pool]
+    else:
+        use_pool = np.zeros(scan.n_points, bool)
+    need_spec = ~identifiable & ~use_pool
+    if (~need_spec).any():
         logs = np.c_[np.log(np.maximum(ps, 1e-12)), np.log(rough)]
-        filled = window_fill(logs, identifiable, adjacency, options.window)
+        filled = window_fill(logs, ~need_spec, adjacency, options.window)
         ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
         status[filled.window] = INTERPOLATED
         status[filled.diffused] = UNRESOLVED
@@ -550,9 +564,12 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
         status[:] = UNRESOLVED
     std_ps[need_spec] = np.inf
     std_rough[need_spec] = np.inf
+    if use_pool.any():
+        std_ps[use_pool], std_rough[use_pool] = std_ps_pool, std_rough_pool
+        status[use_pool] = INTERPOLATED
 
     # pd of points whose specular part came from elsewhere, with that part fixed.
-    refit = need_spec & observed_any
+    refit = (need_spec | use_pool) & observed_any
     if refit.any():
         jrows = {k: jnp.asarray(v) for k, v in rows.items()}
         pd_fix, std_fix = _refit_diffuse(options.model, jrows, jnp.log(jnp.maximum(ps, 1e-300)),
