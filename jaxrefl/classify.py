@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .mesh import vertex_areas
 from .raycast import RayCaster
 from .rig import observation_angles
 
@@ -104,10 +105,7 @@ def classify(points, normals, cam_pos, light_pos, caster: RayCaster,
 
     diffuse, specular, classes = _classes(measurable, theta_r, np.radians(thresholds.diffuse_deg),
                                           np.radians(thresholds.specular_deg))
-    tri = caster.vertices[caster.faces]
-    face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    vertex_area = np.bincount(caster.faces.ravel(), np.repeat(face_area / 3.0, 3), minlength=n)
-    pixel_weight = vertex_area * np.max(np.where(cam_visible, np.maximum(cos_o, 0.0), 0.0), axis=1)
+    pixel_weight = vertex_areas(caster.vertices, caster.faces) * np.max(np.where(cam_visible, np.maximum(cos_o, 0.0), 0.0), axis=1)
     return Measurability(measurable, np.asarray(diffuse), np.asarray(specular), np.asarray(classes),
                          theta_r, seen, pixel_weight)
 

@@ -33,6 +33,8 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from .mesh import area_normal_sums
+
 __all__ = ["FORMAT_VERSION", "Scan", "ScanError", "load_scan", "save_scan", "validate_scan"]
 
 FORMAT_VERSION = 1
@@ -164,15 +166,6 @@ def _check_outside(name, vertices, faces, positions):
         )
 
 
-def _vertex_normals(vertices, faces):
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    return vn
-
-
 def validate_scan(scan: Scan) -> Scan:
     """Check every field of `scan`; return a normalised copy or raise `ScanError`."""
     v = _float_array("vertices", scan.vertices, [(None, 3)]).astype(np.float64)
@@ -203,7 +196,7 @@ def validate_scan(scan: Scan) -> Scan:
         )
 
     if scan.normals is None:
-        nr = _vertex_normals(v, f)
+        nr = area_normal_sums(v, f)
         length = np.linalg.norm(nr, axis=1)
         if np.any(length == 0):
             raise ScanError("normals", f"absent, and {int((length == 0).sum())} vertices belong to no face")

@@ -252,9 +252,6 @@ def _specular_init(model, data, pd, paper):
     return specular_closed_form(model, z, x, spec_use) + (n_spec,)
 
 
-_ROUGHNESS_GRID = np.geomspace(0.003, 1.2, 64)
-
-
 def _grid_init(model, data, w):
     """Robust start by variable projection: for a fixed roughness the model is linear
     in (pd_r, pd_g, pd_b, ps). Solve that weighted least-squares problem in closed
@@ -303,7 +300,7 @@ def _grid_init(model, data, w):
 
     # All grid values at once: rows arrive in chunks (`_CHUNK`), so the (grid, rows,
     # samples) temporaries stay small, and one wide op beats a loop of small ones.
-    logs = jnp.log(jnp.asarray(_ROUGHNESS_GRID))
+    logs = jnp.log(jnp.asarray(brdf.ROUGHNESS_GRID))
     cost, ps, pd = jax.vmap(profile, out_axes=(1, 1, 1))(logs)
     best = jnp.argmin(cost, axis=1)
     ps = jnp.take_along_axis(ps, best[:, None], 1)[:, 0]

@@ -28,7 +28,6 @@ from . import brdf
 
 __all__ = ["pooled_specular"]
 
-_GRID = np.geomspace(0.003, 1.2, 64)
 _CHUNK = 2000
 
 
@@ -42,13 +41,13 @@ def _fit_chunk(s, e, w, cos_i, cos_o, theta_r, model):
     """One chunk: `s`, `e`, `w`, angles `(C, K*M)` -> ps, ln rough, std ps, std ln rough, cost, dof."""
     lobe = jax.vmap(jax.vmap(jax.vmap(partial(_lobe, model), in_axes=(None, 0, 0, 0)),
                              in_axes=(None, 0, 0, 0)), in_axes=(0, None, None, None))
-    logs = jnp.log(jnp.asarray(_GRID))
+    logs = jnp.log(jnp.asarray(brdf.ROUGHNESS_GRID))
     a = e[None] * lobe(logs, cos_i, cos_o, theta_r)  # (G, C, S)
     saa = jnp.sum(w[None] * a * a, -1)
     sas = jnp.sum(w[None] * a * s[None], -1)
     ps_g = jnp.maximum(sas / jnp.maximum(saa, 1e-300), 0.0)
     cost_g = jnp.sum(w[None] * (s[None] - ps_g[..., None] * a) ** 2, -1)  # (G, C)
-    k = jnp.clip(jnp.argmin(cost_g, 0), 1, len(_GRID) - 2)
+    k = jnp.clip(jnp.argmin(cost_g, 0), 1, len(brdf.ROUGHNESS_GRID) - 2)
     pick = lambda arr, off: jnp.take_along_axis(arr, (k + off)[None], 0)[0]  # noqa: E731
     c0, c1, c2 = pick(cost_g, -1), pick(cost_g, 0), pick(cost_g, 1)
     step = logs[1] - logs[0]

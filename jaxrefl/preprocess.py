@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .mesh import area_normal_sums
+
 __all__ = [
     "angular_error_deg",
     "RangeImage",
@@ -576,15 +578,6 @@ def _check_mesh(vertices, faces):
     return v, f
 
 
-def _area_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    acc = np.zeros_like(v)
-    if len(f):
-        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-        for k in range(3):
-            np.add.at(acc, f[:, k], cross)
-    return acc
-
-
 def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     length = np.linalg.norm(x, axis=-1)
     ok = np.isfinite(length) & (length > 0)
@@ -600,7 +593,7 @@ def face_averaged_normals(vertices, faces) -> np.ndarray:
     """`(N, 3)` unit area-weighted vertex normals (right-hand rule on each face's
     vertex order); `(0, 0, 0)` for a vertex in no non-degenerate face."""
     v, f = _check_mesh(vertices, faces)
-    return _unit(_area_normals(v, f))[0]
+    return _unit(area_normal_sums(v, f))[0]
 
 
 def _frames(n: np.ndarray):
@@ -733,7 +726,7 @@ def mesh_quadratic_normals(vertices, faces, k: int = 24, adaptive: bool = True,
         raise ValueError(f"iterations: must be an integer >= 1, got {iterations!r}")
     N, k = len(v), int(k)
 
-    area = _area_normals(v, f)
+    area = area_normal_sums(v, f)
     _, nbr = cKDTree(v).query(v, k=k)
     nbr = np.asarray(nbr, dtype=np.int64)
     # Make sure each vertex is first in its own list (ties with duplicates).

@@ -22,6 +22,8 @@ import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
+from .mesh import area_normal_sums, face_cross
+
 __all__ = ["Hits", "RayCaster"]
 
 _CHUNK = 65_536
@@ -88,21 +90,14 @@ class RayCaster:
         other plate, while the welded normal points into the crease.
         """
         _, weld = np.unique(self.vertices, axis=0, return_inverse=True)
-        weld = weld.ravel()
-        area_normals = np.cross(*(self.vertices[self.faces[:, k]] - self.vertices[self.faces[:, 0]]
-                                  for k in (1, 2)))
-        acc = np.zeros((weld.max() + 1, 3))
-        for k in range(3):
-            np.add.at(acc, weld[self.faces[:, k]], area_normals)
-        n = acc[weld]
+        n = area_normal_sums(self.vertices, self.faces, group=weld)
         length = np.linalg.norm(n, axis=1, keepdims=True)
         return n / np.where(length > 0, length, 1.0)
 
-    @property
+    @cached_property
     def face_normals(self) -> np.ndarray:
         """`(F, 3)` unit geometric normals (right-hand rule on the face's vertex order)."""
-        tri = self.vertices[self.faces]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n = face_cross(self.vertices, self.faces)
         length = np.linalg.norm(n, axis=1, keepdims=True)
         return n / np.where(length > 0, length, 1.0)
 
