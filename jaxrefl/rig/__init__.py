@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import brdf
+from .. import brdf
 
 __all__ = [
     "paper_light_rack",
