@@ -86,15 +86,19 @@ class Simulator:
     """The controller of `lights` lights served on a pty; `port` is the device path.
 
     Inspect `lit()` (the light that is on, or None), `log` (received request lines,
-    decoded), `lit_log` (the light index each time a light went on) and `received`.
+    decoded), `lit_log` (the light index each time a light went on) and `received`;
+    with `state_file`, the lit light's index (empty when dark) is kept in that file,
+    so an external dry-run camera command can check it.
     `power_cycle(faults)` resets the controller's state and faults (a silent one
     answers again); `hang_up()` (or `stop()`) ends the thread and closes the line.
     """
 
-    def __init__(self, lights: int = 60, faults: Faults = Faults(), name: str = "LIGHTRIG-SIM", fw: str = "1.0"):
+    def __init__(self, lights: int = 60, faults: Faults = Faults(), name: str = "LIGHTRIG-SIM", fw: str = "1.0",
+                 state_file: str | None = None):
         if lights < 1:
             raise ValueError(f"lights: must be >= 1, got {lights}")
-        self.lights, self.name, self.fw = lights, name, fw
+        self.lights, self.name, self.fw, self.state_file = lights, name, fw, state_file
+        self._published = ()
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no CR/LF translation, even before the host configures it
         self.port = os.ttyname(self._slave)
@@ -118,6 +122,7 @@ class Simulator:
                 self._rng = random.Random(faults.seed)
                 self._base = self.received  # ordinals in the new faults count from here
             self._sel, self._on, self._ready_at = None, False, 0.0
+            self._publish()
 
     def lit(self):
         """Index of the light that is on, or None."""
@@ -191,6 +196,7 @@ class Simulator:
                 i = len(line) // 2  # mid-line: the seq usually survives, so the E01 reaches the host
                 line = line[:i] + bytes([line[i] ^ 0x01]) + line[i + 1:] if line else b"?"
             reply = self._reply(line)
+            self._publish()
             if n in f.drop or (f.drop_rate and self._rng.random() < f.drop_rate):
                 return
             if n in f.garble or (f.garble_rate and self._rng.random() < f.garble_rate):
@@ -240,6 +246,17 @@ class Simulator:
         self._on = True
         return encode_reply(seq, {"sel": sel, "on": 1})
 
+    def _publish(self) -> None:
+        """Rewrite `state_file` (atomically) with the lit light's index, or nothing when dark."""
+        lit = self._sel if self._on else None
+        if self.state_file is None or self._published == (lit,):
+            return
+        tmp = f"{self.state_file}.tmp"
+        with open(tmp, "w") as fh:
+            fh.write("" if lit is None else str(lit))
+        os.replace(tmp, self.state_file)
+        self._published = (lit,)
+
     def _send(self, data: bytes) -> None:
         try:
             os.write(self._master, data)
@@ -262,8 +279,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python3 -m jaxrefl.rig.simulator", description=__doc__.splitlines()[0])
     parser.add_argument("--lights", type=int, default=60)
     parser.add_argument("--faults", default="", help="e.g. garble_rate=0.1,seed=1 or disconnect_after=20")
+    parser.add_argument("--state-file", default=None, help="keep the lit light's index in this file")
     args = parser.parse_args(argv)
-    sim = Simulator(args.lights, Faults.parse(args.faults))
+    sim = Simulator(args.lights, Faults.parse(args.faults), state_file=args.state_file)
     print(sim.port, flush=True)
     try:
         while not sim.hung_up:
