@@ -32,7 +32,6 @@ still missing are captured. A session refuses a different plan or `ext`.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import os
@@ -43,6 +42,11 @@ import subprocess
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: sessions are not locked against a second capture
+    fcntl = None
 
 from .io import atomic_write
 from .rig.serial import LightController, LinkOptions, RigError
@@ -242,6 +246,8 @@ def _recover(folder, plan: Plan, manifest: dict, ext: str) -> dict:
 
 def _lock(folder):
     fh = open(os.path.join(folder, ".lock"), "a")
+    if fcntl is None:
+        return fh
     try:
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:

@@ -135,7 +135,8 @@ def test_driver_recovers_from_a_bad_line(faults, counter):
 
 
 def test_driver_skips_a_late_reply_to_an_earlier_request():
-    with Simulator(12, Faults(latency=0.3)) as sim, LightController(sim.port, LinkOptions(timeout=0.05, retries=0)) as c:
+    once = LinkOptions(timeout=0.05, retries=0)
+    with Simulator(12, Faults(latency=0.3)) as sim, LightController(sim.port, once) as c:
         with pytest.raises(ControllerSilent):
             c.status()
         sim.power_cycle(Faults())

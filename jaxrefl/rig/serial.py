@@ -42,7 +42,7 @@ Verbs (every verb is idempotent, so a host may re-send the same line):
 | request | reply fields | meaning |
 |---|---|---|
 | `ID` | `id fw lights proto` | identify: name, firmware, number of lights `n`, protocol version (1) |
-| `SEL k` | `sel ready` | select light `k` (0 <= k < n); the lit light, if any, goes off first. A positioner starts moving and answers at once with `ready=0`; `STAT` says when it has settled |
+| `SEL k` | `sel ready` | select light `k` (0 <= k < n), the lit one going off; a positioner answers `ready=0` and moves (poll `STAT`) |
 | `ON` | `sel on` | switch the selected light on (`on=1`) |
 | `OFF` | `sel on` | switch every light off (`on=0`); the selection stays |
 | `STAT` | `sel on ready lights` | state; `sel=-` when nothing is selected |
