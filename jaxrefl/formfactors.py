@@ -170,8 +170,12 @@ def _cast(caster, vertices, faces, normals, patches, rays, mode, rng):
     o = caster.offset_origins(origins.reshape(-1, 3), off_n.reshape(-1, 3), dirs.reshape(-1, 3))
     hits = caster.first_hit(o, dirs.reshape(-1, 3))
     face = np.where(hits.hit, hits.face, 0)
+    # Front or back: the geometric normal, turned to the side of the shading normals (a grazing
+    # ray into the next face of a curved surface can be on the wrong side of the shading normal).
     shading = np.einsum("rk,rkj->rj", hits.barycentric, normals[faces[face]])
-    front = hits.hit & (np.einsum("rj,rj->r", shading, dirs.reshape(-1, 3)) < 0)
+    geometric = caster.face_normals[face]
+    geometric *= np.where(np.einsum("rj,rj->r", geometric, shading) < 0, -1.0, 1.0)[:, None]
+    front = hits.hit & (np.einsum("rj,rj->r", geometric, dirs.reshape(-1, 3)) < 0)
     ray_row = np.repeat(patches, rays)[front]
     cols = faces[face[front]].ravel()
     rows = np.repeat(ray_row, 3)
