@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -40,9 +41,9 @@ from .raycast import RayCaster
 
 __all__ = ["FormFactors", "form_factors", "cosine_directions", "hammersley"]
 
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2
 _MEMORY: dict[str, FormFactors] = {}
-_PATCH_CHUNK = 4096  # patches per batch of rays (bounds memory at rays x chunk)
+_RAYS_PER_TASK = 32_768  # rays per worker task: traced inline (below raycast's chunk size)
 
 
 @dataclass(frozen=True)
@@ -229,10 +230,20 @@ def form_factors(vertices, faces, normals=None, *, rays: int = 256, mode: str = 
         except (OSError, KeyError, ValueError):  # a damaged cache file is recomputed
             pass
 
-    rng = np.random.default_rng(seed)
+    # Chunks of patches small enough to trace inline, each generated, traced and reduced in
+    # a worker thread (NumPy and Embree release the GIL); one random stream per chunk keeps
+    # the result independent of the thread count.
     p = len(vertices)
-    parts = [_cast(caster, vertices, faces, normals, np.arange(a, min(a + _PATCH_CHUNK, p)), int(rays),
-                   mode, rng) for a in range(0, p, _PATCH_CHUNK)]
+    chunk = max(1, _RAYS_PER_TASK // int(rays))
+    starts = list(range(0, p, chunk))
+    seeds = np.random.SeedSequence(seed).spawn(len(starts))
+
+    def task(k):
+        return _cast(caster, vertices, faces, normals, np.arange(starts[k], min(starts[k] + chunk, p)), int(rays),
+                     mode, np.random.default_rng(seeds[k]))
+
+    with ThreadPoolExecutor(caster.threads) as pool:
+        parts = list(pool.map(task, range(len(starts))))
     rows, cols, vals = (np.concatenate(x) for x in zip(*parts))
     coo = sp.coo_matrix((vals, (rows, cols)), shape=(p, p)).tocsr()
     coo.sum_duplicates()

@@ -114,7 +114,7 @@ def solve_radiosity(ff: FormFactors, pd, e_direct, tol: float = 1e-8, max_iter: 
 
     **Returns:** `B` `(P, C, 3)` radiosity [W/m^2] and the iteration count.
     """
-    b, iters, _ = _forward(_jax_ff(ff), jnp.asarray(pd, jnp.float64), jnp.asarray(e_direct, jnp.float64),
+    b, iters, _ = _forward(_jax_ff(ff), jnp.asarray(pd), jnp.asarray(e_direct),
                            tol, max_iter)
     return np.asarray(b), int(iters)
 
@@ -297,7 +297,7 @@ def inverse_radiosity(ff: FormFactors, configs: LightConfigs, e_cfg, radiance, o
     b_lambert = pd_lambert[:, None, :] * np.asarray(e_cfg)[..., None]
     pd, inter, iters, err = _inverse(_jax_ff(ff), jnp.asarray(e_cfg), jnp.asarray(b_obs), jnp.asarray(observed),
                                      jnp.asarray(e_obs), jnp.asarray(configs.index), jnp.asarray(cfg_obs),
-                                     jnp.asarray(b_cfg_obs), jnp.asarray(b_lambert), jnp.asarray(pd0, jnp.float64),
+                                     jnp.asarray(b_cfg_obs), jnp.asarray(b_lambert), jnp.asarray(pd0),
                                      None if correction is None else jnp.asarray(correction),
                                      tol, max_iter, paper)
     return InverseResult(np.asarray(pd), np.asarray(inter), observed.any(1), int(iters), float(err))

@@ -4,6 +4,10 @@
 Figure 8 (coverage against the number of lights) for each object, and, going
 past the paper, the greedy count against the exact minimum of an integer
 program on the same covering problem.
+
+`fold_profile` is the analogue of Figures 12-13, 16-17 and 21-22: pd (RGB)
+across the fold of Object E for any number of results (Methods I, II, III),
+with the mean error within 2 cm of the fold.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import time
 
 import numpy as np
 
-__all__ = ["table1"]
+__all__ = ["table1", "fold_profile"]
 
 
 def table1(out_dir: str, resolution: int = 64, objects=("A", "B", "C", "D"), th1: float = 0.8,
@@ -122,3 +126,66 @@ def table1(out_dir: str, resolution: int = 64, objects=("A", "B", "C", "D"), th1
     atomic_write(os.path.join(out_dir, "table1.md"), lambda fh: fh.write(text.encode()))
     atomic_write(os.path.join(out_dir, "table1.json"), lambda fh: fh.write(json.dumps(rows, indent=2).encode()))
     return {"rows": rows, "markdown": text}
+
+
+def fold_profile(scan, results: dict, out_png: str | None = None, near: float = 0.02, bins: int = 30) -> dict:
+    """pd across the fold of Object E.
+
+    **Arguments:** `scan` the Object E scan (its vertices give the signed
+    distance from the fold, `data_synth.objects.fold_coordinate`); `results`
+    label -> `Estimate`; `out_png` where to draw the three channel panels (pd
+    averaged along the fold in `bins` bins; truth dashed); `near` [m].
+
+    **Returns:** per label, the mean relative pd error of points with their own
+    samples within `near` of the fold and farther away, and the binned profile.
+    """
+    from data_synth.objects import fold_coordinate
+
+    fold = fold_coordinate(scan.vertices)
+    edges = np.linspace(fold.min(), fold.max(), bins + 1)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    which = np.clip(np.digitize(fold, edges) - 1, 0, bins - 1)
+    count = np.bincount(which, minlength=bins)
+
+    def profile(values):
+        sums = np.stack([np.bincount(which, values[:, c], minlength=bins) for c in range(3)], 1)
+        return np.where(count[:, None] > 0, sums / np.maximum(count, 1)[:, None], np.nan)
+
+    out = {"near_m": near, "centres_m": centres.tolist()}
+    truth = scan.true_pd
+    for label, est in results.items():
+        entry = {"profile": profile(est.pd).tolist()}
+        if truth is not None:
+            rel = (np.abs(est.pd - truth) / np.maximum(truth, 1e-12)).mean(1)
+            own = est.pd_measured
+            close = (np.abs(fold) < near) & own
+            entry["near_fold_mean_rel_error"] = float(rel[close].mean()) if close.any() else None
+            entry["far_mean_rel_error"] = float(rel[~close & own].mean()) if (~close & own).any() else None
+            entry["near_fold_points"] = int(close.sum())
+        out[label] = entry
+    if out_png:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), sharey=True)
+        for c, (ax, name) in enumerate(zip(axes, ("R", "G", "B"))):
+            for k, (label, est) in enumerate(results.items()):
+                err = out[label].get("near_fold_mean_rel_error")
+                tag = f"{label} ({err:.1%} within {near * 100:.0f} cm)" if err is not None else label
+                ax.plot(centres * 100, profile(est.pd)[:, c], "-", color=f"C{k}", label=tag)
+            if truth is not None:
+                ax.plot(centres * 100, profile(truth)[:, c], "k--", lw=1, label="truth")
+            ax.axvspan(-near * 100, near * 100, color="0.9", zorder=0)
+            ax.set_xlabel("position across the fold [cm] (plate II < 0 < plate I)")
+            ax.set_title(f"pd, {name} channel", fontsize=9)
+        axes[0].set_ylabel("mean pd along the fold")
+        axes[0].legend(fontsize=7)
+        fig.suptitle(f"Object E ({scan.meta.get('setup', '')} set-up): diffuse reflectance across the fold",
+                     fontsize=10)
+        fig.tight_layout()
+        fig.savefig(out_png, dpi=120)
+        plt.close(fig)
+        out["figure"] = out_png
+    return out

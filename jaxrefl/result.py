@@ -64,7 +64,8 @@ def _rel(a, b):
 
 def truth_errors(est: Estimate, scan) -> dict:
     """Median and 90th-percentile relative errors of pd, ps and roughness against the
-    scan's ground truth, over measured points and over all points. Roughness is
+    scan's ground truth, over measured points and over all points (absolute errors
+    where the truth is 0). Roughness is
     compared only when the truth is in the estimate's model (sigma vs alpha)."""
     measured = est.status == 0
     truth_rough = scan.true_sigma if est.model == "torrance-sparrow" else scan.true_alpha
@@ -75,10 +76,17 @@ def truth_errors(est: Estimate, scan) -> dict:
             continue
         err = _rel(value, truth)
         err = err.reshape(len(err), -1).mean(axis=1)
+        # Relative error is undefined where the truth is 0 (e.g. ps of a matte surface):
+        # those points are summarised by their absolute error instead.
+        zero = np.abs(truth).reshape(len(err), -1).max(axis=1) <= 1e-9
+        absolute = np.abs(value - truth).reshape(len(err), -1).mean(axis=1)
         entry = {}
         for label, mask in (("measured", measured), ("all", np.ones_like(measured))):
-            if mask.any():
-                entry[label] = {"median": float(np.median(err[mask])),
-                                "p90": float(np.percentile(err[mask], 90))}
+            if (mask & ~zero).any():
+                entry[label] = {"median": float(np.median(err[mask & ~zero])),
+                                "p90": float(np.percentile(err[mask & ~zero], 90))}
+            if (mask & zero).any():
+                entry[label + "_where_truth_is_0"] = {"median_abs": float(np.median(absolute[mask & zero])),
+                                                      "p90_abs": float(np.percentile(absolute[mask & zero], 90))}
         out[name] = entry
     return out
