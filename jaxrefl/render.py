@@ -23,6 +23,8 @@ __all__ = [
     "colormap",
     "save_png",
     "scan_picture",
+    "reflectance_figure",
+    "comparison_figure",
 ]
 
 
@@ -155,3 +157,108 @@ def scan_picture(scan, what: str = "radiance", light: int = 0, view: str = "auto
         return to_srgb8(np.where(np.isfinite(img), 0.5 * (img + 1.0), np.nan), exposure=1.0)
     count = scan.observed().sum(axis=1).astype(np.float64)
     return colormap(shade(hits, scan.faces, count, shape), "viridis", vmin=0)
+
+
+# -- figures (matplotlib) ----------------------------------------------------------------
+
+STATUS_NAMES = ("measured", "interpolated", "unresolved")
+_STATUS_COLOURS = ("#2ca02c", "#f2c200", "#d62728")
+
+
+def _save_figure(path, fig) -> None:
+    import matplotlib.pyplot as plt
+
+    from .io import atomic_write
+
+    try:
+        atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
+    finally:
+        plt.close(fig)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = None) -> None:
+    """The paper's Figures 10-11 for any result: (a) diffuse albedo pd as colour,
+    (b) specular reflectance ps, (c) roughness in grey (largest = white), (d) status
+    (measured / interpolated / unresolved), each with its colour bar, over the
+    pixels `hits` `(H*W rays)` of a view of `shape` `(H, W)`. Written to PNG `path`."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    plt = _pyplot()
+    rough_name = "sigma" if est.model == "torrance-sparrow" else "alpha"
+    pd = shade(hits, faces, est.pd, shape)
+    ps = shade(hits, faces, est.ps, shape)
+    rough = shade(hits, faces, est.roughness, shape)
+    # Status is categorical: take the nearest vertex of the hit face, not a blend.
+    nearest = faces[np.maximum(hits.face, 0), np.argmax(hits.barycentric, axis=1)]
+    status = np.where(hits.hit, np.asarray(est.status, dtype=np.float64)[nearest], np.nan).reshape(shape)
+    aspect = shape[1] / shape[0]
+    fig, axes = plt.subplots(2, 2, figsize=(2 * 3.6 * min(aspect, 2.5) + 1.6, 2 * 3.6 + 0.8))
+    (a, b), (c, d) = axes
+    pd_img = to_srgb8(pd, exposure=1.0, background=(255, 255, 255))
+    a.imshow(pd_img)
+    a.set_title("(a) diffuse albedo pd (sRGB)")
+    for ax, img, cmap, label, name in ((b, ps, "magma", "ps", "(b) specular reflectance ps"),
+                                       (c, rough, "gray", f"{rough_name} [rad]", f"(c) roughness {rough_name}")):
+        cm = plt.get_cmap(cmap).with_extremes(bad="white")
+        finite = img[np.isfinite(img)]
+        hi = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+        im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=0.0, vmax=hi)
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=label)
+        ax.set_title(name)
+    cm = ListedColormap(_STATUS_COLOURS).with_extremes(bad="white")
+    im = d.imshow(np.ma.masked_invalid(status), cmap=cm, norm=BoundaryNorm([-0.5, 0.5, 1.5, 2.5], 3))
+    bar = fig.colorbar(im, ax=d, fraction=0.046, pad=0.02, ticks=[0, 1, 2])
+    bar.ax.set_yticklabels(STATUS_NAMES)
+    counts = np.bincount(np.asarray(est.status, dtype=np.int64), minlength=3)
+    d.set_title("(d) status: " + ", ".join(f"{100 * k / max(counts.sum(), 1):.0f}% {s[:6]}."
+                                           for k, s in zip(counts, STATUS_NAMES)), fontsize=9)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    _save_figure(path, fig)
+
+
+def comparison_figure(path, image: np.ndarray, reference: np.ndarray, labels=("relit", "reference"),
+                      title: str | None = None) -> None:
+    """Side by side: two linear images `(H, W, 3)` tone-mapped with one shared
+    exposure (the reference's), and the luminance difference `image - reference` in
+    percent of the reference's 99th-percentile luminance, with a colour bar.
+    NaN pixels (off the object) are white. Written to PNG `path`."""
+    plt = _pyplot()
+    if image.shape != reference.shape:
+        raise ValueError(f"reference: {reference.shape[1]}x{reference.shape[0]} pixels, "
+                         f"the image {image.shape[1]}x{image.shape[0]}")
+    finite = np.isfinite(reference).all(axis=-1)
+    top = float(np.percentile(reference[finite], 99.5)) if finite.any() else 1.0
+    exposure = 1.0 / top if top > 0 else 1.0
+    lum = lambda x: x.mean(axis=-1)  # noqa: E731
+    scale = float(np.percentile(lum(reference)[finite], 99)) if finite.any() else 1.0
+    diff = 100.0 * (lum(image) - lum(reference)) / (scale if scale > 0 else 1.0)
+    limit = float(np.nanpercentile(np.abs(diff), 99.5)) if np.isfinite(diff).any() else 1.0
+    limit = limit if limit > 0 else 1.0
+    aspect = image.shape[1] / image.shape[0]
+    fig, axes = plt.subplots(1, 3, figsize=(3 * 3.4 * min(aspect, 2.5) + 1.2, 3.8))
+    for ax, img, label in zip(axes, (image, reference), labels):
+        ax.imshow(to_srgb8(img, exposure=exposure, background=(255, 255, 255)))
+        ax.set_title(label)
+    cm = plt.get_cmap("RdBu_r").with_extremes(bad="white")
+    im = axes[2].imshow(np.ma.masked_invalid(diff), cmap=cm, vmin=-limit, vmax=limit)
+    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, label="% of reference (99th pct.)")
+    axes[2].set_title(f"{labels[0]} - {labels[1]}")
+    for ax in axes:
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    _save_figure(path, fig)
