@@ -5,6 +5,7 @@ from importlib.metadata import PackageNotFoundError, version
 from . import brdf as brdf, io as io, raycast as raycast, rig as rig
 from . import classify as classify, lights as lights, local as local, preprocess as preprocess
 from . import render as render, result as result
+from . import export as export, ingest as ingest, relight as relight
 from .io import Scan as Scan, ScanError as ScanError, load_scan as load_scan, save_scan as save_scan
 
 try:

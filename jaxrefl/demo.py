@@ -5,7 +5,9 @@ scanner and all 60 candidate lights, direct lighting, 1 % noise, 12-bit
 sensor; Object E, diffuse set-up, with global illumination), pictures of
 their ground truth and observations, the light selection for Object A (§2.2,
 Figure 8 analogue), Method I on Object A captured under those lights (result
-file, estimated maps, status map, errors against truth), the path tracer's furnace test and convergence study, and
+file, estimated maps, status map, errors against truth; the reflectance-map
+figure, a PLY export, and a relit picture under a new light beside the truth),
+the path tracer's furnace test and convergence study, and
 `summary.json` with every number and timing.
 """
 
@@ -66,6 +68,28 @@ def _plot_convergence(path, conv):
     plt.close(fig)
 
 
+def _relight_against_truth(scan, estimate, out_path, name) -> dict:
+    """Relit picture of `estimate` under a light not used in the fit, beside the truth under
+    the same light (side by side and difference); returns the image errors."""
+    from . import relight as rl
+    from . import render
+    from .raycast import RayCaster
+
+    centre = 0.5 * (scan.vertices.min(0) + scan.vertices.max(0))
+    light = centre + np.array([-0.35, 0.45, 0.4])
+    camera = rl.fit_camera(scan.vertices, centre + np.array([0.2, 0.1, 0.6]), width=480, height=480)
+    caster = RayCaster(scan.vertices, scan.faces)
+    images = [rl.picture(caster, scan.faces, rl.relight(scan.vertices, scan.faces, scan.normals, e, light, 1.0,
+                                                        camera.center, caster=caster), camera)
+              for e in (estimate, rl.truth_estimate(scan))]
+    finite = np.isfinite(images[1]).all(axis=-1)
+    exposure = 1.0 / float(np.percentile(images[1][finite], 99.5))
+    render.save_png(out_path(f"{name}_relit.png"), render.to_srgb8(images[0], exposure=exposure))
+    render.comparison_figure(out_path(f"{name}_relit_vs_truth.png"), *images, labels=("relit estimate", "truth"),
+                             title=f"Object {name}: new light at {np.round(light, 3).tolist()} m, direct light")
+    return {"light": light.tolist(), "camera": camera.center.tolist(), **rl.image_errors(*images)}
+
+
 def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
              progress: bool = False) -> dict:
     """Run the demo into folder `out`; returns (and writes) the summary dict."""
@@ -81,6 +105,7 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
     from .local import estimate_local
     from .raycast import RayCaster
     from .result import save_result, truth_errors
+    from .export import export_ply
 
     os.makedirs(out, exist_ok=True)
     t_start = time.perf_counter()
@@ -126,6 +151,15 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
     render.save_png(out_path("A_status.png"), render.colormap(
         render.shade(hits, captured.faces, estimate.status.astype(float), shape), "RdYlGn_r", vmin=0, vmax=2))
     seconds["method_I_A"] = time.perf_counter() - t
+
+    # Relighting (issue 7): Method I's estimate of Object A under a fixed light the scanner never
+    # used (its rack rides the head), against the truth; the paper's Figure 10 maps; a PLY export.
+    t = time.perf_counter()
+    relit_a = _relight_against_truth(captured, estimate, out_path, "A")
+    render.reflectance_figure(out_path("A_reflectance_maps.png"), hits, shape, captured.faces, estimate,
+                              title="Object A, Method I: estimated reflectance (Figure 10 analogue)")
+    export_ply(out_path("A_result_local.ply"), captured.vertices, captured.faces, captured.normals, estimate)
+    seconds["relight_A"] = time.perf_counter() - t
 
     # 2. Object E, white paper, pinhole camera, 6 lights around it: direct vs global illumination.
     t = time.perf_counter()
@@ -174,6 +208,7 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
             "status_counts": np.bincount(estimate.status, minlength=3).tolist(),
             "errors": errors_a,
         },
+        "relight_A": relit_a,
         "object_E_diffuse": {
             **{k: report_e[k] for k in ("points", "lights", "samples", "mc_relative_stderr_median")},
             "gi_over_direct_within_2cm_of_fold": float(np.mean(boost[near])),

@@ -219,8 +219,8 @@ def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = 
     bar = fig.colorbar(im, ax=d, fraction=0.046, pad=0.02, ticks=[0, 1, 2])
     bar.ax.set_yticklabels(STATUS_NAMES)
     counts = np.bincount(np.asarray(est.status, dtype=np.int64), minlength=3)
-    d.set_title("(d) status: " + ", ".join(f"{100 * k / max(counts.sum(), 1):.0f}% {s[:6]}."
-                                           for k, s in zip(counts, STATUS_NAMES)), fontsize=9)
+    d.set_title("(d) status: " + ", ".join(f"{100 * k / max(counts.sum(), 1):.0f}% {s}"
+                                           for k, s in zip(counts, STATUS_NAMES)), fontsize=8)
     for ax in axes.ravel():
         ax.set_axis_off()
     if title:
