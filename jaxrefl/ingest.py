@@ -188,7 +188,8 @@ def write_png(path, image: np.ndarray) -> None:
     rows = np.concatenate([np.zeros((h, 1), np.uint8), body.reshape(h, -1)], axis=1)
 
     def chunk(kind, payload):
-        return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
+        crc = struct.pack(">I", zlib.crc32(kind + payload))
+        return struct.pack(">I", len(payload)) + kind + payload + crc
 
     png = (_PNG_SIGNATURE + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, depth, ctype, 0, 0, 0))
            + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6)) + chunk(b"IEND", b""))
@@ -268,7 +269,8 @@ def _array(value, shape, name, *, positive=False):
     except (TypeError, ValueError):
         raise ScanError(name, f"must be numbers of shape {shape}, got {value!r}") from None
     if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
-        raise ScanError(name, f"must have shape {tuple('?' if s is None else s for s in shape)}, got {arr.shape}")
+        want = tuple("?" if s is None else s for s in shape)
+        raise ScanError(name, f"must have shape {want}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ScanError(name, "must be finite")
     if positive and np.any(arr <= 0):
@@ -366,7 +368,8 @@ def _images(rig, folder, n_lights, n_cameras):
         out.append((_file(folder, e.get("file"), name), light, camera, exposure))
     unused = sorted(set(range(n_lights)) - {o[1] for o in out})
     if unused:
-        raise ScanError("images", f"light(s) {unused} have no image: the light list does not match the images")
+        raise ScanError("images", f"light(s) {unused} have no image: the light list does not match "
+                                  "the images")
     return out
 
 
@@ -392,7 +395,8 @@ def _radiance(path, name, shape, transfer, black, saturation, exposure, gain):
                               f"its camera is {shape[1]}x{shape[0]}")
     ch = values.shape[2]
     if ch not in (1, 2, 3, 4):
-        raise ScanError(name, f"{os.path.basename(path)} has {ch} channels: need 1 (grey), 3 (RGB) or 4 (RGBA)")
+        raise ScanError(name, f"{os.path.basename(path)} has {ch} channels: need 1 (grey), 3 (RGB) "
+                              "or 4 (RGBA)")
     rgb = values[..., :3] if ch >= 3 else np.repeat(values[..., :1], 3, axis=-1)
     level = saturation if saturation is not None else (1.0 if top is not None else np.inf)
     saturated = np.any(rgb >= level, axis=-1)
@@ -603,8 +607,8 @@ def _ingest_photometric_stereo(folder, rig):
         bad = mask & (length < 0.5)
         if np.any(bad):
             r, c = np.argwhere(bad)[0]
-            raise ScanError("normals", f"{int(bad.sum())} masked pixel(s) without a unit normal, e.g. row {r}, "
-                                       f"column {c}")
+            raise ScanError("normals", f"{int(bad.sum())} masked pixel(s) without a unit normal, "
+                                       f"e.g. row {r}, column {c}")
     else:
         mask = length > 0.5
     size = _number(rig, "pixel_size", 1.0 / max(h, w))
@@ -659,7 +663,8 @@ def _ingest_photometric_stereo(folder, rig):
         "source": os.path.abspath(folder),
         "rig": {"type": "orthographic", "view": [0.0, 0.0, -1.0], "pixel_size": size, "width": w,
                 "height": h, "distant": DISTANT},
-        "images": [{"file": os.path.relpath(p, folder), "light": li, "exposure": ex} for p, li, _, ex in images],
+        "images": [{"file": os.path.relpath(p, folder), "light": li, "exposure": ex}
+                   for p, li, _, ex in images],
         "light_rgb": [light_rgb[i[1]].tolist() for i in images],
         "light_directions": [(light_pos[i[1]] / far).tolist() for i in images],
         "transfer": transfer, "black_level": black, "saturation": saturation,

@@ -69,12 +69,13 @@ def indirect(model_gi, vertices, faces, normals, est: Estimate, light_pos, inten
         inspect.signature(fn).bind(*args)
     except TypeError:
         raise ValueError(f"model-gi: {model_gi} is not available in this version (jaxrefl.{model_gi}."
-                         f"relight_indirect{inspect.signature(fn)} does not take (vertices, faces, normals, est, "
-                         "light_pos, intensity, cam_pos))") from None
+                         f"relight_indirect{inspect.signature(fn)} does not take (vertices, faces, "
+                         "normals, est, light_pos, intensity, cam_pos))") from None
     out = np.asarray(fn(*args), dtype=np.float64)
     if out.shape != (n, 3) or not np.all(np.isfinite(out)):
+        bad = int(np.count_nonzero(~np.isfinite(out)))
         raise ValueError(f"model-gi: jaxrefl.{model_gi}.relight_indirect returned {out.shape} "
-                         f"with {int(np.count_nonzero(~np.isfinite(out)))} non-finite value(s), want ({n}, 3)")
+                         f"with {bad} non-finite value(s), want ({n}, 3)")
     return out
 
 

@@ -19,7 +19,7 @@ from jaxrefl.io import ScanError
 from jaxrefl.raycast import RayCaster
 from jaxrefl.rig import PinholeCamera, observation_geometry
 
-from .helpers import grid_plane, unit
+from .helpers import plate_over_plane, unit
 from .test_cli import assert_one_line_error, jaxrefl
 
 # -- a synthetic capture ------------------------------------------------------------------
@@ -37,8 +37,8 @@ def _pixel_radiance(caster, cam, vertices, faces, normals, pd, ps, sigma, light,
     dist = np.linalg.norm(d, axis=1)
     cos_i, cos_o, theta_r = brdf.shading_geometry(jnp.asarray(n), jnp.asarray(d / dist[:, None]),
                                                   jnp.asarray(unit(cam.center - p)))
-    f = brdf.torrance_sparrow(jnp.asarray(interp(pd)), jnp.asarray(interp(ps)), jnp.log(jnp.asarray(interp(sigma))),
-                              cos_i, cos_o, theta_r)
+    f = brdf.torrance_sparrow(jnp.asarray(interp(pd)), jnp.asarray(interp(ps)),
+                              jnp.log(jnp.asarray(interp(sigma))), cos_i, cos_o, theta_r)
     rad = np.asarray(brdf.point_light_radiance(f, intensity, cos_i, jnp.asarray(dist)))
     blocked = caster.segments_blocked(p, caster.face_normals[hits.face[h]], np.broadcast_to(light, p.shape))
     img = np.zeros((len(h), 3))
@@ -51,7 +51,8 @@ def _vertex_radiance(vertices, normals, pd, ps, sigma, cam_pos, lights, intensit
     g = observation_geometry(vertices, normals, cam_pos, lights)
     f = brdf.torrance_sparrow(jnp.asarray(pd)[:, None], jnp.asarray(ps)[:, None],
                               jnp.log(jnp.asarray(sigma))[:, None], g.cos_i, g.cos_o, g.theta_r)
-    return np.asarray(brdf.point_light_radiance(f, jnp.asarray(intensities)[None], g.cos_i, g.light_distance)), g
+    rad = brdf.point_light_radiance(f, jnp.asarray(intensities)[None], g.cos_i, g.light_distance)
+    return np.asarray(rad), g
 
 
 def _camera_json(cam):
@@ -68,13 +69,14 @@ def capture(tmp_path_factory):
     lights = centre + np.array([[0.3, 0.3, 0.5], [-0.35, 0.1, 0.4], [0.0, -0.05, 0.6], [0.2, 0.5, 0.1]])
     intensity = np.array([1.0, 2.0, 1.5, 1.0])
     caster = RayCaster(obj.vertices, obj.faces)
-    images = [_pixel_radiance(caster, cam, obj.vertices, obj.faces, obj.normals, obj.pd, obj.ps, obj.roughness,
-                              light, y) for light, y in zip(lights, intensity)]
+    images = [_pixel_radiance(caster, cam, obj.vertices, obj.faces, obj.normals, obj.pd, obj.ps,
+                              obj.roughness, light, y) for light, y in zip(lights, intensity)]
     direct, geometry = _vertex_radiance(obj.vertices, obj.normals, obj.pd, obj.ps, obj.roughness, cam.center,
                                         lights, intensity)
     folder = tmp_path_factory.mktemp("capture")
     mesh = trimesh.Trimesh(obj.vertices, obj.faces, vertex_normals=obj.normals, process=False)
-    (folder / "mesh.ply").write_bytes(mesh.export(file_type="ply", vertex_normal=True))  # true normals in the file
+    # The true normals go into the file (ingest uses a PLY's normals).
+    (folder / "mesh.ply").write_bytes(mesh.export(file_type="ply", vertex_normal=True))
     scale = 0.9 / max(float(i.max()) for i in images)
     for k, img in enumerate(images):  # 16-bit linear PNGs, and light 3 as a .npy float image
         if k == 3:
@@ -112,7 +114,8 @@ def test_ingest_round_trip_matches_direct_synthesis(capture):
     assert scan.meta["normals"] == "mesh file"
     np.testing.assert_allclose(scan.normals, capture["obj"].normals, atol=1e-6)  # PLY floats
     # Nothing invisible to the camera is kept.
-    seen = capture["caster"].visibility(capture["cam"].center)[:, 0] & (np.asarray(capture["geometry"].cos_o[:, 0]) > 0)
+    facing = np.asarray(capture["geometry"].cos_o[:, 0]) > 0
+    seen = capture["caster"].visibility(capture["cam"].center)[:, 0] & facing
     assert not np.any(scan.valid & ~seen[:, None])
     assert 0.25 < scan.valid.mean() < 0.5
     counts = scan.meta["masked_samples"]
@@ -143,8 +146,6 @@ def test_ingest_is_exact_where_the_image_is_smooth(tmp_path):
     """A plate hovering over a plane, seen from above: the plane's Lambertian shading is smooth,
     so every kept sample is exact to bilinear error, unless an occluded, mixed (plate edge) or
     shadow-edge sample slipped through, which would be off by tens of percent."""
-    from .helpers import plate_over_plane
-
     v, f = plate_over_plane(plate_half=0.3, height=0.4)
     pd = np.full((len(v), 3), 0.6)
     zeros = np.zeros(len(v))
@@ -156,8 +157,9 @@ def test_ingest_is_exact_where_the_image_is_smooth(tmp_path):
     img = _pixel_radiance(caster, cam, v, f, normals, pd, zeros, np.full(len(v), 0.1), light, 5.0)
     write_png(tmp_path / "img.png", np.round(img / img.max() * 0.9 * 65535).astype(np.uint16))
     trimesh.Trimesh(v, f, process=False).export(tmp_path / "mesh.ply")
-    rig = {"mesh": "mesh.ply", "cameras": [_camera_json(cam)], "lights": [{"position": light.tolist(),
-           "intensity": 5.0}], "images": [{"file": "img.png", "exposure": 0.9 / img.max()}], "transfer": "linear"}
+    rig = {"mesh": "mesh.ply", "cameras": [_camera_json(cam)],
+           "lights": [{"position": light.tolist(), "intensity": 5.0}],
+           "images": [{"file": "img.png", "exposure": 0.9 / img.max()}], "transfer": "linear"}
     (tmp_path / "rig.json").write_text(json.dumps(rig))
     scan = ingest(tmp_path)
     direct, _ = _vertex_radiance(v, normals, pd, zeros, np.full(len(v), 0.1), cam.center, light[None], [5.0])
@@ -180,7 +182,8 @@ def test_8bit_srgb_photographs_agree_within_quantisation(capture, tmp_path):
     for k, img in enumerate(capture["images"]):
         lin = np.clip(img * capture["scale"], 0, 1)
         srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
-        Image.fromarray(np.round(srgb * 255).astype(np.uint8)).save(folder / f"img{k}.png")  # Pillow: filtered rows
+        # Written by Pillow, whose rows use the Sub, Up and Paeth filters.
+        Image.fromarray(np.round(srgb * 255).astype(np.uint8)).save(folder / f"img{k}.png")
         rig["images"][k] = {"file": f"img{k}.png", "exposure": capture["scale"]}
     (folder / "rig.json").write_text(json.dumps(rig))
     exact, quantised = ingest(capture["folder"]), ingest(folder)
@@ -226,7 +229,8 @@ def _encode_png(img, filters):
     h, w, ch = img.shape
     depth = 16 if img.dtype == np.uint16 else 8
     bpp = ch * depth // 8
-    x = np.ascontiguousarray(img.astype(">u2" if depth == 16 else np.uint8)).view(np.uint8).reshape(h, w * bpp)
+    x = np.ascontiguousarray(img.astype(">u2" if depth == 16 else np.uint8)).view(np.uint8)
+    x = x.reshape(h, w * bpp)
     x = x.astype(np.int32)
     left = np.concatenate([np.zeros((h, bpp), np.int32), x[:, :-bpp]], axis=1)
     up = np.concatenate([np.zeros((1, w * bpp), np.int32), x[:-1]], axis=0)
@@ -252,7 +256,8 @@ def test_png_decoder_handles_every_row_filter(tmp_path, dtype, channels):
     rng = np.random.default_rng(3)
     top = np.iinfo(dtype).max
     yy, xx = np.mgrid[0:37, 0:53]
-    img = (np.stack([xx * 900 + yy * 300] * channels, -1) + rng.integers(0, 5000, (37, 53, channels))) % (top + 1)
+    noise = rng.integers(0, 5000, (37, 53, channels))
+    img = (np.stack([xx * 900 + yy * 300] * channels, -1) + noise) % (top + 1)
     img = img.astype(dtype)
     filters = np.arange(37) % 5
     path = tmp_path / "f.png"
@@ -270,7 +275,8 @@ def test_png_writer_round_trips_and_pillow_agrees(tmp_path):
     assert top == 65535 and np.array_equal(np.round(values * 65535).astype(np.uint16), rgb16)
     grey = rgb16[..., 0]
     write_png(tmp_path / "g.png", grey)
-    assert np.array_equal(np.asarray(Image.open(tmp_path / "g.png")), grey)  # Pillow reads 16-bit grey exactly
+    # Pillow reads 16-bit grey exactly.
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "g.png")), grey)
     rgb8 = (rgb16 >> 8).astype(np.uint8)
     Image.fromarray(rgb8).save(tmp_path / "p.png")
     values, top = read_image(tmp_path / "p.png")
@@ -282,8 +288,8 @@ def test_png_writer_round_trips_and_pillow_agrees(tmp_path):
 
 
 def test_srgb_decoding_and_undistortion():
-    np.testing.assert_allclose(srgb_to_linear([0.0, 0.04045, 0.5, 1.0]), [0.0, 0.04045 / 12.92, 0.21404114, 1.0],
-                               rtol=1e-6)
+    np.testing.assert_allclose(srgb_to_linear([0.0, 0.04045, 0.5, 1.0]),
+                               [0.0, 0.04045 / 12.92, 0.21404114, 1.0], rtol=1e-6)
     cam = PinholeCamera.look_at([0.1, 0.2, 1.0], [0.0, 0.0, 0.0], width=400, height=300, fov_deg=50)
     cam = PinholeCamera(K=cam.K, R=cam.R, t=cam.t, width=400, height=300,
                         dist=np.array([-0.25, 0.08, 0.001, -0.002, -0.01]))
@@ -314,7 +320,8 @@ def test_photometric_stereo_lambertian_normal_map_gives_pd_back(tmp_path):
     write_png(tmp_path / "mask.png", (mask * 255).astype(np.uint8))
     rig = {"type": "photometric-stereo", "normals": "normals.png", "mask": "mask.png", "pixel_size": 0.002,
            "lights": [{"direction": d.tolist(), "intensity": i.tolist()} for d, i in zip(dirs, rgb)],
-           "images": [{"file": f"im{k}.png", "exposure": scale} for k in range(len(dirs))], "transfer": "linear"}
+           "images": [{"file": f"im{k}.png", "exposure": scale} for k in range(len(dirs))],
+           "transfer": "linear"}
     (tmp_path / "rig.json").write_text(json.dumps(rig))
     scan = ingest(tmp_path)
     assert scan.n_points == mask.sum() and np.all(scan.vertices[:, 2] == 0)
@@ -352,7 +359,8 @@ BAD_CAPTURES = [
     ("images[2]", "160x120 pixels, its camera is 320x240",
      lambda f, r: write_png(f / "img2.png", np.zeros((120, 160, 3), np.uint16))),
     ("images", "3 image(s) for 4 light(s)", lambda f, r: r["images"].pop()),
-    ("images", "light(s) [3] have no image", lambda f, r: [e.update(light=min(k, 2)) for k, e in enumerate(r["images"])]),
+    ("images", "light(s) [3] have no image",
+     lambda f, r: [e.update(light=min(k, 2)) for k, e in enumerate(r["images"])]),
     ("images[0].light", "index in [0, 3]", lambda f, r: r["images"][0].update(light=9)),
     ("cameras[0].K", "shape (3, 3)", lambda f, r: r["cameras"][0].update(K=[[1, 0], [0, 1]])),
     ("lights[2].position", "shape (3,)", lambda f, r: r["lights"][2].update(position=[0, 1])),
@@ -363,7 +371,8 @@ BAD_CAPTURES = [
 ]
 
 
-@pytest.mark.parametrize("field, message, edit", BAD_CAPTURES, ids=[b[0] + ":" + b[1][:12] for b in BAD_CAPTURES])
+@pytest.mark.parametrize("field, message, edit", BAD_CAPTURES,
+                         ids=[b[0] + ":" + b[1][:12] for b in BAD_CAPTURES])
 def test_bad_capture_folders_name_the_field(capture, tmp_path, field, message, edit):
     folder = _broken(capture, tmp_path, edit)
     with pytest.raises(ScanError) as info:

@@ -76,7 +76,8 @@ def test_lambertian_plane_closed_form():
 
 def test_indirect_is_pluggable_and_fails_clearly(scan_a):
     est = _estimate(scan_a)
-    args = (scan_a.vertices, scan_a.faces, scan_a.normals, est, np.array([0.3, 0.3, 0.8]), 1.0, scan_a.cam_pos)
+    light = np.array([0.3, 0.3, 0.8])
+    args = (scan_a.vertices, scan_a.faces, scan_a.normals, est, light, 1.0, scan_a.cam_pos)
     assert np.array_equal(rl.indirect("none", *args), np.zeros((scan_a.n_points, 3)))
     with pytest.raises(ValueError, match="model-gi: must be one of none, radiosity, photon"):
         rl.indirect("bogus", *args)
@@ -206,8 +207,9 @@ def test_cli_relight_maps_export(scan_a, tmp_path):
     assert r.returncode == 0, r.stderr
     img = np.load(tmp_path / "relit.npy")
     assert img.shape == (64, 96, 3) and np.all(np.isfinite(img)) and img.max() > 0
-    assert jaxrefl("maps", tmp_path / "r.npz", tmp_path / "a.npz", "--out", tmp_path / "maps.png").returncode == 0
-    assert jaxrefl("export", tmp_path / "r.npz", tmp_path / "a.npz", "--out", tmp_path / "r.ply").returncode == 0
+    for command, out in (("maps", "maps.png"), ("export", "r.ply")):
+        r = jaxrefl(command, tmp_path / "r.npz", tmp_path / "a.npz", "--out", tmp_path / out)
+        assert r.returncode == 0, r.stderr
     for name in ("relit.png", "cmp.png", "maps.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert trimesh.load(tmp_path / "r.ply", process=False).vertices.shape == scan_a.vertices.shape
