@@ -13,14 +13,20 @@ Per point, from its classified samples (`classify`):
    with `Y / C^2` divided out); Ward `z = 4 pi s sqrt(cos_i cos_o) / E`,
    `x = tan^2 theta_r`, `a = ln(ps / alpha^2)`, `b = 1 / alpha^2`. Two samples
    give the closed form; more give weighted least squares in the log domain.
-3. **Polish** — Levenberg-Marquardt on the full model over all valid samples
-   (`T_diff`, `T_spec`, `T_none`), parameters `(pd_rgb, ps, ln roughness)` with
-   bounds `0 <= pd <= 1`, `ps >= 0` enforced by projection in every step,
-   residuals weighted by a noise model `sqrt((0.01 y)^2 + floor^2)`, from two
-   starts (the closed form, and the best of a roughness grid with pd and ps
-   solved linearly); the lower final cost wins. A fixed number of steps with
-   the Jacobian written out, all points at once (vmap, `lax.map` over chunks,
-   one jit). Standard deviations from the Gauss-Newton covariance.
+3. **Polish** — the full model over all valid samples (`T_diff`, `T_spec`,
+   `T_none`), residuals weighted by a noise model `sqrt((0.01 y)^2 + floor^2)`,
+   parameters `(pd_rgb, ps, ln roughness)` with bounds `0 <= pd <= 1`,
+   `ps >= 0`. Given the roughness the model is linear in pd and ps, so by
+   variable projection each point is a 1-D problem in ln roughness: pd and ps
+   are solved exactly under their bounds for every trial roughness
+   (`lm.bounded_arrow_solve`) and `steps` damped Gauss-Newton steps move the
+   roughness (`lm.gauss_newton_1d`). The start is whichever of the closed form
+   and a 32-value roughness grid a Newton step predicts lowest (float32, softer
+   weights), which keeps false minima away. All points at once: rows lie along
+   the last axis with the sums over samples written out, one compiled call per
+   chunk of rows. Standard deviations from the Gauss-Newton covariance.
+   `solver="optimistix"` polishes the full model with optimistix's
+   Levenberg-Marquardt from both starts instead (slower; for comparison).
 4. **Identifiability** — the specular part counts as measured when the point
    has two or more usable `T_spec` samples, the fit is finite, and `ps` stands
    `min_snr` standard deviations above 0 with roughness known to a factor
@@ -47,7 +53,7 @@ import numpy as np
 from . import brdf
 from .classify import T_DIFF, T_INVALID, T_SPEC, Thresholds, classify_scan
 from .fill import vertex_adjacency, window_fill
-from .lm import covariance, spd_solve
+from .lm import bounded_arrow_solve, gauss_newton_1d, projected_step_terms, rowsum, spd_inverse_diagonal
 from .pool import pooled_specular
 from .raycast import RayCaster
 from .rig import observation_geometry
@@ -107,6 +113,11 @@ class Estimate:
 
 
 # -- closed forms ---------------------------------------------------------------------
+#
+# Inside the fit, rows lie along the last axis ("sample-major": `(M, n)`, `(M, 3, n)`)
+# and sums over the M samples are written out (`lm.rowsum`): on XLA-CPU each formula
+# is then one vectorised loop over the rows, several times faster than reducing a short
+# axis, and the host transposes the rows into this layout once (`_chunked`).
 
 
 def _spec_coordinates(model, s, e, cos_i, cos_o, theta_r):
@@ -128,6 +139,25 @@ def _to_parameters(model, a, b):
     return a + 2.0 * log_alpha, log_alpha
 
 
+def _line_fit(model, z, x, use):
+    """`specular_closed_form` on sample-major `(M, n)` arrays."""
+    use = use & (z > 0)
+    lz = jnp.log(jnp.where(use, z, 1.0))
+    w = jnp.where(use, z * z, 0.0)
+    w = w / jnp.maximum(jnp.max(w, axis=0), 1e-300)[None]
+    sw, sx, sy = rowsum(list(w)), rowsum(list(w * x)), rowsum(list(w * lz))
+    sxx, sxy = rowsum(list(w * x * x)), rowsum(list(w * x * lz))
+    det = sw * sxx - sx * sx
+    enough = (rowsum(list(use.astype(jnp.int32))) >= 2) & (det > 1e-14 * jnp.maximum(sw * sxx, 1e-300))
+    det = jnp.where(enough, det, 1.0)
+    slope = (sw * sxy - sx * sy) / det  # d ln z / d x = -b
+    a = (sy - slope * sx) / jnp.where(sw > 0, sw, 1.0)
+    b = -slope
+    ln_ps, ln_rough = _to_parameters(model, a, b)
+    ok = enough & (b > 0) & jnp.isfinite(ln_ps) & jnp.isfinite(ln_rough)
+    return jnp.where(ok, ln_ps, _LN_FLOOR), jnp.where(ok, ln_rough, jnp.log(0.1)), ok
+
+
 def specular_closed_form(model, z, x, use):
     """Weighted log-domain line fit per row.
 
@@ -138,21 +168,7 @@ def specular_closed_form(model, z, x, use):
     **Returns:** `(ln_ps, ln_roughness, ok)`, each `(N,)`; `ok` False where
     fewer than two usable samples, equal `x`, or a non-decaying lobe.
     """
-    use = use & (z > 0)
-    lz = jnp.log(jnp.where(use, z, 1.0))
-    w = jnp.where(use, z * z, 0.0)
-    w = w / jnp.maximum(jnp.max(w, axis=1, keepdims=True), 1e-300)
-    sw, sx, sy = w.sum(1), (w * x).sum(1), (w * lz).sum(1)
-    sxx, sxy = (w * x * x).sum(1), (w * x * lz).sum(1)
-    det = sw * sxx - sx * sx
-    enough = (use.sum(1) >= 2) & (det > 1e-14 * jnp.maximum(sw * sxx, 1e-300))
-    det = jnp.where(enough, det, 1.0)
-    slope = (sw * sxy - sx * sy) / det  # d ln z / d x = -b
-    a = (sy - slope * sx) / jnp.where(sw > 0, sw, 1.0)
-    b = -slope
-    ln_ps, ln_rough = _to_parameters(model, a, b)
-    ok = enough & (b > 0) & jnp.isfinite(ln_ps) & jnp.isfinite(ln_rough)
-    return jnp.where(ok, ln_ps, _LN_FLOOR), jnp.where(ok, ln_rough, jnp.log(0.1)), ok
+    return _line_fit(model, jnp.asarray(z).T, jnp.asarray(x).T, jnp.asarray(use).T)
 
 
 def quantisation_step(radiance, observed) -> float:
@@ -218,94 +234,44 @@ def prepare_rows(scan, thresholds: Thresholds = Thresholds(), caster: RayCaster 
             "use": use, "classes": classes}
 
 
-@jax.jit
 def _diffuse_init(y, e, use, classes, theta_r, paper):
-    """pd `(N, 3)` from T_diff samples (LS or Eq. 5) or, lacking any, the least specular sample."""
+    """pd `(3, n)` and `has_diff` `(n,)` from sample-major rows (`y` `(M, 3, n)`, the rest
+    `(M, n)`): least squares over the T_diff samples or, `paper`, Eq. 5 with the T_diff
+    sample of smallest theta_r (still > theta_th1); lacking any T_diff sample, the valid
+    sample with the largest theta_r (it bounds pd from above)."""
     diff = use & (classes == T_DIFF)
-    ls = jnp.pi * jnp.sum(jnp.where(diff[..., None], e[..., None] * y, 0.0), 1) \
-        / jnp.maximum(jnp.sum(jnp.where(diff, e * e, 0.0), 1), 1e-300)[:, None]
-    # Eq. 5: the T_diff sample with the smallest theta_r (still > theta_th1).
-    best = jnp.argmin(jnp.where(diff, theta_r, jnp.inf), axis=1)
-    pick = lambda a: jnp.take_along_axis(a, best[:, None], 1)[:, 0]  # noqa: E731
-    eq5 = jnp.pi * jnp.take_along_axis(y, best[:, None, None], 1)[:, 0] / jnp.maximum(pick(e), 1e-300)[:, None]
-    # No T_diff sample: the valid sample with the largest theta_r bounds pd from above.
-    least = jnp.argmax(jnp.where(use, theta_r, -jnp.inf), axis=1)
-    e_least = jnp.take_along_axis(e, least[:, None], 1)[:, 0]
-    fallback = jnp.pi * jnp.take_along_axis(y, least[:, None, None], 1)[:, 0] / jnp.maximum(e_least, 1e-300)[:, None]
-    has_diff = diff.any(1)
-    pd = jnp.where(has_diff[:, None], jnp.where(paper, eq5, ls), fallback)
-    return jnp.where(use.any(1)[:, None], pd, 0.0), has_diff
+    m = use.shape[0]
+    num = rowsum([jnp.where(diff[j], e[j], 0.0)[None] * y[j] for j in range(m)])
+    den = rowsum([jnp.where(diff[j], e[j] * e[j], 0.0) for j in range(m)])
+    least_squares = jnp.pi * num / jnp.maximum(den, 1e-300)[None]
+
+    def single(pick):
+        """pd from the one sample `pick` `(n,)` (argmin / argmax: real reductions, so
+        XLA computes them once instead of inside every later reader)."""
+        y_j = jnp.take_along_axis(y, pick[None, None], 0)[0]
+        e_j = jnp.take_along_axis(e, pick[None], 0)[0]
+        return jnp.pi * y_j / jnp.maximum(e_j, 1e-300)[None]
+
+    has_diff = diff.any(0)
+    pd_any = single(jnp.argmax(jnp.where(use, theta_r, -jnp.inf), axis=0))
+    pd_diff = single(jnp.argmin(jnp.where(diff, theta_r, jnp.inf), axis=0)) if paper else least_squares
+    pd = jnp.where(has_diff[None], pd_diff, pd_any)
+    return jnp.where(use.any(0)[None], pd, 0.0), has_diff
 
 
-def _specular_init(model, data, pd, paper):
-    y, e, use, classes = data["y"], data["e"], data["use"], data["classes"]
+def _specular_init(model, rows, pd, paper):
+    """Closed-form `(ln_ps, ln_rough, ok, n_spec)`, each `(n,)`, from sample-major rows."""
+    y, e, use, classes = rows["y"], rows["e"], rows["use"], rows["classes"]
     spec_use = use & (classes == T_SPEC)
-    s = jnp.mean(y, -1) - e * jnp.mean(pd, -1)[:, None] / jnp.pi
-    z, x = _spec_coordinates(model, s, e, data["cos_i"], data["cos_o"], data["theta_r"])
-    n_spec = spec_use.sum(1)
+    s = jnp.mean(y, axis=1) - e * (jnp.mean(pd, axis=0) / jnp.pi)[None]  # grey specular part (M, n)
+    z, x = _spec_coordinates(model, s, e, rows["cos_i"], rows["cos_o"], rows["theta_r"])
+    n_spec = rowsum(list(spec_use.astype(jnp.int32)))
     if paper:  # Eq. 7: the two T_spec samples with the smallest theta_r
-        order = jnp.argsort(jnp.where(spec_use, data["theta_r"], jnp.inf), axis=1)
-        rank = jnp.argsort(order, axis=1)
-        spec_use = spec_use & (rank < 2)
+        order = jnp.argsort(jnp.where(spec_use, rows["theta_r"], jnp.inf), axis=0)
+        spec_use = spec_use & (jnp.argsort(order, axis=0) < 2)
     else:  # fewer than two T_spec samples: start from every non-diffuse sample (weights z^2)
-        spec_use = jnp.where((n_spec >= 2)[:, None], spec_use, use & (classes != T_DIFF))
-    return specular_closed_form(model, z, x, spec_use) + (n_spec,)
-
-
-def _grid_init(model, data, w):
-    """Robust start by variable projection: for a fixed roughness the model is linear
-    in (pd_r, pd_g, pd_b, ps). Solve that weighted least-squares problem in closed
-    form (ps, pd >= 0 by projection) on a dense roughness grid and keep the best.
-
-    **Returns:** `(pd (N, 3), ln_ps (N,), ln_rough (N,))`.
-    """
-    e, use, y = data["e"], data["use"], data["y"]
-    # Softer weights than the fit's: with purely relative weights the dim tail samples
-    # make the profile so sharp in roughness that a grid step can miss its minimum.
-    row_max = jnp.max(jnp.where(use[..., None], y, 0.0), axis=(1, 2), keepdims=True)
-    soft = 1.0 / (y * y + (0.05 * row_max) ** 2 + 1e-300)
-    ww = jnp.where(use[..., None], jnp.minimum(w * w, soft), 0.0)  # (N, M, 3)
-    a1 = e / jnp.pi  # (N, M)
-    wa, wy = ww * a1[..., None], ww * y  # (N, M, 3)
-    s11 = jnp.einsum("nmc,nm->nc", wa, a1)
-    b1 = jnp.einsum("nmc,nm->nc", wy, a1)
-    yy = jnp.sum(wy * y, 1)
-    s11_safe = jnp.maximum(s11, 1e-300)
-    # The unit lobe factorises as amp * exp(-x * kappa(roughness)) * scale(roughness):
-    # only one exp per sample and grid value is left inside the scan.
-    ci = jnp.maximum(data["cos_i"], brdf.COS_FLOOR)
-    co = jnp.maximum(data["cos_o"], brdf.COS_FLOOR)
-    if model == "torrance-sparrow":
-        amp, x = e / (ci * co), data["theta_r"] ** 2
-    else:
-        c = jnp.maximum(jnp.cos(data["theta_r"]), brdf.COS_FLOOR)
-        amp, x = e / (4.0 * jnp.pi * jnp.sqrt(ci * co)), (jnp.sin(data["theta_r"]) / c) ** 2
-    amp = jnp.where(use, amp, 0.0)
-
-    def profile(log_r):
-        r2 = jnp.exp(2.0 * log_r)
-        kappa, scale = (0.5 / r2, 1.0) if model == "torrance-sparrow" else (1.0 / r2, 1.0 / r2)
-        a2 = amp * jnp.exp(-jnp.minimum(x * kappa, 700.0)) * scale  # (N, M) = E * unit lobe
-        s12 = jnp.einsum("nmc,nm->nc", wa, a2)
-        s22 = jnp.einsum("nmc,nm->nc", ww, a2 * a2)
-        b2 = jnp.einsum("nmc,nm->nc", wy, a2)
-        den = s22.sum(1) - (s12 * s12 / s11_safe).sum(1)
-        ps = (b2.sum(1) - (s12 * b1 / s11_safe).sum(1)) / jnp.where(den > 0, den, 1.0)
-        ps = jnp.where(den > 0, jnp.maximum(ps, 0.0), 0.0)
-        pd = jnp.clip((b1 - s12 * ps[:, None]) / s11_safe, 0.0, 1.0)
-        # The weighted squared residual, expanded in the sums above (no (N, M, 3) temporaries).
-        p2 = ps[:, None]
-        cost = jnp.sum(yy - 2 * pd * b1 - 2 * p2 * b2 + pd * pd * s11 + 2 * pd * p2 * s12 + p2 * p2 * s22, 1)
-        return cost, ps, pd
-
-    # All grid values at once: rows arrive in chunks (`_CHUNK`), so the (grid, rows,
-    # samples) temporaries stay small, and one wide op beats a loop of small ones.
-    logs = jnp.log(jnp.asarray(brdf.ROUGHNESS_GRID))
-    cost, ps, pd = jax.vmap(profile, out_axes=(1, 1, 1))(logs)
-    best = jnp.argmin(cost, axis=1)
-    ps = jnp.take_along_axis(ps, best[:, None], 1)[:, 0]
-    pd = jnp.take_along_axis(pd, best[:, None, None], 1)[:, 0]
-    return pd, jnp.log(jnp.maximum(ps, 1e-12)), logs[best]
+        spec_use = jnp.where((n_spec >= 2)[None], spec_use, use & (classes != T_DIFF))
+    return _line_fit(model, z, x, spec_use) + (n_spec,)
 
 
 def _refit_diffuse(model, data, ln_ps, ln_rough, w):
@@ -339,145 +305,242 @@ def _solve_optimistix(residual, p0, data, steps):
     return jax.jit(jax.vmap(one))(p0, data)
 
 
+# -- variable projection in ln roughness ------------------------------------------------------
+#
+# Given the roughness the model `y_jc = E_j (pd_c / pi + ps g_j)` is linear in pd (each
+# channel touching one colour) and ps, so each row is a 1-D problem in ln roughness with
+# (pd, ps) solved exactly under their bounds (`lm`).
+
+_LN_ROUGH_LO, _LN_ROUGH_HI = float(np.log(1e-4)), float(np.log(np.pi / 2))
+_PS_MAX = 10.0
+#: Grid of starts: every other value of the shared roughness grid (32, 3.6 mrad to 1.2 rad).
+_GRID = brdf.ROUGHNESS_GRID[1::2]
+
+
+def _squared_weights(y, use, floor):
+    """Squared residual weights `(M, 3, n)` of the noise model `sqrt((0.01 y)^2 + f^2)`,
+    `f = max(floor, 1e-4 max y)`, 0 where unused; and the row's largest value `(n,)`."""
+    # A reduction, not a written-out max: XLA would inline that into every element below.
+    top = jnp.max(jnp.where(use[:, None], y, 0.0), axis=(0, 1))
+    f = jnp.maximum(floor, 1e-4 * top)
+    return jnp.where(use[:, None], 1.0 / ((0.01 * y) ** 2 + (f**2)[None, None]), 0.0), top
+
+
+def _lobe_terms(model, rows):
+    """Per-sample terms `(M, n)`: `a = E / pi` (d pred / d pd_c) and `(amp, x)` with
+    `E * unit lobe = amp exp(-x kappa) scale` (kappa, scale from the roughness:
+    `_lobes`); zero for unused samples."""
+    valid = rows["use"] & (rows["cos_i"] > 0) & (rows["cos_o"] > 0)
+    e = jnp.where(valid, rows["e"], 0.0)
+    ci = jnp.maximum(rows["cos_i"], brdf.COS_FLOOR)
+    co = jnp.maximum(rows["cos_o"], brdf.COS_FLOOR)
+    if model == "torrance-sparrow":
+        amp, x = e / (ci * co), rows["theta_r"] ** 2
+    else:
+        c = jnp.maximum(jnp.cos(rows["theta_r"]), brdf.COS_FLOOR)
+        amp, x = e / (4.0 * jnp.pi * jnp.sqrt(ci * co)), (jnp.sin(rows["theta_r"]) / c) ** 2
+    return {"a": e / jnp.pi, "amp": amp, "x": x}
+
+
+def _weight_terms(y, lobe, ww):
+    """Roughness-free weighted terms for squared weights `ww` `(M, 3, n)`: per sample `wa`
+    `(M, 3, n)`, `wsum`, `wy` `(M, n)`; per row `s11`, `s11_inv`, `b1` (3 x `(n,)`), `yy`,
+    all relative to `norm` `(n,)` (yy, the cost of a zero model)."""
+    a = lobe["a"]
+    wa, wy = ww * a[:, None], ww * y
+    yy = rowsum(list(wy[:, 0] * y[:, 0] + wy[:, 1] * y[:, 1] + wy[:, 2] * y[:, 2]))
+    # Relative sums are better scaled, and dividing by a per-row value ends each sum in a
+    # division, which XLA-CPU computes once instead of inlining the sum into every reader.
+    norm = jnp.where(yy > 0, yy, 1.0)
+    s11 = rowsum(list(wa * a[:, None])) / norm[None]
+    return {"ww": ww, "y": y, "wa": wa, "wsum": ww[:, 0] + ww[:, 1] + ww[:, 2],
+            "wy": wy[:, 0] + wy[:, 1] + wy[:, 2], "norm": norm, "yy": yy / norm, "s11": list(s11),
+            "s11_inv": list(jnp.where(s11 > 0, 1.0 / jnp.where(s11 > 0, s11, 1.0), 0.0)),
+            "b1": list(rowsum(list(wa * y)) / norm[None])}
+
+
+def _lobes(model, lobe, rho):
+    """`b_j = E_j g_j` (unit-ps specular radiance) and `t_j = d ln b_j / d rho` per sample
+    (lists of `(n,)`), at ln roughness `rho` `(n,)`."""
+    inv_r2 = jnp.exp(-2.0 * rho)
+    amp, x = lobe["amp"], lobe["x"]
+    m = amp.shape[0]
+    if model == "torrance-sparrow":  # exp(-x / (2 r^2))
+        kappa = 0.5 * inv_r2
+        b = [amp[j] * jnp.exp(-jnp.minimum(x[j] * kappa, 700.0)) for j in range(m)]
+        return b, [2.0 * kappa * x[j] for j in range(m)]
+    b = [amp[j] * inv_r2 * jnp.exp(-jnp.minimum(x[j] * inv_r2, 700.0)) for j in range(m)]  # exp(-x / r^2) / r^2
+    return b, [2.0 * inv_r2 * x[j] - 2.0 for j in range(m)]
+
+
+def _sums(terms, b, d):
+    """Weighted sums over the samples with the lobe `b` and its derivative `d = b t`,
+    relative to `terms["norm"]`."""
+    wa, wsum, wy = terms["wa"], terms["wsum"], terms["wy"]
+    m = len(b)
+    out = [rowsum([wa[j, c] * b[j] for j in range(m)]) for c in range(3)]
+    out += [rowsum([wsum[j] * b[j] * b[j] for j in range(m)]), rowsum([wy[j] * b[j] for j in range(m)])]
+    out += [rowsum([wa[j, c] * d[j] for j in range(m)]) for c in range(3)]
+    out += [rowsum([wsum[j] * b[j] * d[j] for j in range(m)]), rowsum([wsum[j] * d[j] * d[j] for j in range(m)]),
+            rowsum([wy[j] * d[j] for j in range(m)])]
+    out = [x / terms["norm"] for x in out]
+    return {"s12": out[:3], "s22": out[3], "b2": out[4], "s1d": out[5:8], "s2d": out[8], "sdd": out[9],
+            "b2d": out[10]}
+
+
+def _profile(model, lobe, terms, rho):
+    """Projected (relative) cost at `rho` `(n,)` with pd, ps solved under their bounds, half
+    its derivative and half its Gauss-Newton second derivative: `(cost, g, h)`."""
+    b, t = _lobes(model, lobe, rho)
+    s = _sums(terms, b, [bj * tj for bj, tj in zip(b, t)])
+    pd, ps, free = bounded_arrow_solve(terms["s11"], terms["s11_inv"], s["s12"], s["s22"], terms["b1"], s["b2"])
+    # The weighted squared residual expanded in the sums (no per-sample pass).
+    cost = terms["yy"] - 2.0 * ps * s["b2"] + ps * ps * s["s22"] + rowsum(
+        [pd[c] * (pd[c] * terms["s11"][c] - 2.0 * terms["b1"][c] + 2.0 * ps * s["s12"][c]) for c in range(3)])
+    g, h = projected_step_terms(terms["s11_inv"], s["s12"], s["s22"], pd, ps, free, s["s1d"], s["s2d"], s["sdd"],
+                                s["b2d"])
+    return cost, g, h
+
+
+def _start(model, lobe, terms, rho_closed):
+    """Start `(n,)` in ln roughness, in float32 on `terms` (the soft weights): of the
+    values of `_GRID` and the closed form `rho_closed`, the one whose Newton step in the
+    projected cost (at most one grid spacing) predicts the lowest cost -- so a basin
+    narrower than the grid spacing still wins."""
+    lobe, terms = jax.tree_util.tree_map(lambda v: v.astype(jnp.float32), (lobe, terms))
+    logs = np.log(_GRID).astype(np.float32)
+    spacing = float(logs[1] - logs[0])
+
+    def predicted(rho):
+        cost, g, h = _profile(model, lobe, terms, rho)
+        newton = -g / jnp.maximum(h, jnp.finfo(jnp.float32).tiny)
+        near = jnp.abs(newton) <= spacing
+        cost = jnp.where(near, cost + g * newton, cost)
+        return jnp.where(jnp.isfinite(cost), cost, jnp.inf), jnp.where(near, rho + newton, rho)
+
+    def scan(best, log_r):  # the grid, one value at a time: each step's data stays in cache
+        cost, rho = predicted(jnp.full_like(terms["yy"], log_r))
+        better = cost < best[0]
+        return (jnp.where(better, cost, best[0]), jnp.where(better, rho, best[1])), None
+
+    (_, rho), _ = jax.lax.scan(scan, predicted(rho_closed.astype(jnp.float32)), logs)
+    return jnp.clip(rho.astype(rho_closed.dtype), _LN_ROUGH_LO, _LN_ROUGH_HI)
+
+
+def _solution(model, lobe, terms, rho=None, params=None):
+    """Parameters `(5, n)` (pd_rgb, ps, ln roughness), weighted cost `(n,)` and Gauss-Newton
+    variances `(5, n)` (for unit noise) at ln roughness `rho` with pd, ps solved there
+    (ps capped at `_PS_MAX`), or at given `params` `(5, n)`."""
+    if params is not None:
+        rho = params[4]
+    b, t = _lobes(model, lobe, rho)
+    s = _sums(terms, b, [bj * tj for bj, tj in zip(b, t)])
+    if params is None:
+        pd, ps, _ = bounded_arrow_solve(terms["s11"], terms["s11_inv"], s["s12"], s["s22"], terms["b1"], s["b2"])
+        ps = jnp.minimum(ps, _PS_MAX)
+    else:
+        pd, ps = [params[c] for c in range(3)], params[3]
+    a, ww, y = lobe["a"], terms["ww"], terms["y"]
+    cost = rowsum([ww[j, c] * (y[j, c] - a[j] * pd[c] - b[j] * ps) ** 2 for j in range(len(b)) for c in range(3)])
+    # J^T J of (pd_rgb, ps, ln roughness) over the relative sums; each pd touches one channel.
+    zero = jnp.zeros_like(ps)
+    jtj = [[terms["s11"][0]], [zero, terms["s11"][1]], [zero, zero, terms["s11"][2]], s["s12"] + [s["s22"]],
+           [ps * v for v in s["s1d"]] + [ps * s["s2d"], ps * ps * s["sdd"]]]
+    var = jnp.stack(spd_inverse_diagonal(jtj)) / terms["norm"][None]
+    return jnp.stack(pd + [ps, rho]), cost, var
+
+
+def _fit_chunk(rows, noise_floor, model, paper, solver, steps):
+    """Closed forms, polish and Gauss-Newton variances for one sample-major chunk."""
+    pd0, has_diff = _diffuse_init(rows["y"], rows["e"], rows["use"], rows["classes"], rows["theta_r"], paper)
+    ln_ps0, ln_rough0, spec_ok, n_spec = _specular_init(model, rows, pd0, paper)
+    ww, top = _squared_weights(rows["y"], rows["use"], noise_floor)
+    lobe = _lobe_terms(model, rows)
+    terms = _weight_terms(rows["y"], lobe, ww)
+    p0 = jnp.concatenate([jnp.clip(pd0, 0.0, 1.0), jnp.exp(ln_ps0)[None], ln_rough0[None]])
+    params = p0
+    if not paper:
+        # Softer weights to choose the start: with purely relative weights the dim tail
+        # samples make the profile so sharp in roughness that a grid can miss its minimum.
+        soft = jnp.minimum(ww, 1.0 / (rows["y"] ** 2 + ((0.05 * top) ** 2)[None, None] + 1e-300))
+        rho0 = _start(model, lobe, _weight_terms(rows["y"], lobe, soft),
+                      jnp.clip(ln_rough0, _LN_ROUGH_LO, _LN_ROUGH_HI))
+        if solver == "lm":
+            rho, cost = gauss_newton_1d(lambda r: _profile(model, lobe, terms, r), rho0, steps,
+                                        _LN_ROUGH_LO, _LN_ROUGH_HI)
+            params = None
+        else:  # optimistix's LM on the full model, per row, from both starts; the lower cost wins
+            row_major = {k: jnp.moveaxis(rows[k], -1, 0) for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
+            row_major["w"] = jnp.sqrt(jnp.moveaxis(ww, -1, 0))
+            both = jax.tree_util.tree_map(lambda v: jnp.concatenate([v, v]), row_major)
+            starts = jnp.concatenate([p0.T, _solution(model, lobe, terms, rho0)[0].T])
+            residual = _make_residual(model)
+            polished = _solve_optimistix(residual, starts, both, steps)
+            cost = jax.vmap(lambda p, d: jnp.sum(residual(p, d) ** 2))(polished, both)
+            cost = jnp.where(jnp.all(jnp.isfinite(polished), axis=1), cost, jnp.inf)
+            n = p0.shape[1]
+            params = jnp.where((cost[n:] < cost[:n])[:, None], polished[n:], polished[:n]).T
+            cost = jnp.minimum(cost[:n], cost[n:])
+        spec_ok = spec_ok | jnp.isfinite(cost)
+    if params is None:
+        params, cost, var = _solution(model, lobe, terms, rho)
+    else:
+        params = jnp.where(jnp.all(jnp.isfinite(params), axis=0)[None], params, p0)
+        # Rows the data cannot pin down may wander; keep them in range (they stay flagged).
+        params = jnp.clip(params, np.array([[0.0]] * 4 + [[_LN_ROUGH_LO]]), np.array([[_PS_MAX]] * 4 + [[_LN_ROUGH_HI]]))
+        params, cost, var = _solution(model, lobe, terms, params=params)
+    dof = 3 * rowsum(list(rows["use"].astype(jnp.int32))) - 5
+    var = var * (cost / jnp.maximum(dof, 1))[None]
+    var = jnp.where((dof > 0)[None] & jnp.isfinite(var), var, jnp.inf)
+    return {"params": params, "var": var, "spec_ok": spec_ok, "n_spec": n_spec, "has_diff": has_diff}
+
+
+_fit_chunk_jit = jax.jit(_fit_chunk, static_argnames=("model", "paper", "solver", "steps"))
+
+
 def _bucket(n: int, step: int) -> int:
     return max(step, -(-n // step) * step)
 
 
-_CHUNK = 4000  # rows per lax.map step: keeps the working set in cache (not a power of two)
+_CHUNK = 4000  # rows per compiled call (not a power of two: those ran 2-2.7x slower)
+_ROW_KEYS = ("y", "e", "cos_i", "cos_o", "theta_r", "use", "classes")
 
 
-def _pad_rows(rows: dict) -> tuple[dict, int]:
-    """Pad rows and observations with unused entries to bucketed sizes, so that
-    scans of similar size reuse one compilation: observations to a multiple of 4,
-    rows to a multiple of the chunk (itself a multiple of 500, at most 4000).
-    Returns the padded rows and the chunk size."""
+def _chunked(rows: dict) -> tuple[dict, int]:
+    """Rows `(N, M, ...)` as sample-major chunks `(C, M, ..., chunk)`, padded with unused
+    entries to bucketed sizes so that scans of similar size reuse one compilation:
+    observations to a multiple of 4, rows to a multiple of the chunk (itself a multiple
+    of 500, at most `_CHUNK`). Returns the chunks and the chunk size."""
     n, m = np.shape(rows["use"])
     chunk = min(_CHUNK, _bucket(n, 500))
     n_pad, m_pad = _bucket(n, chunk), _bucket(m, 4)
     out = {}
-    for key, value in rows.items():
-        value = np.asarray(value)
-        widths = [(0, n_pad - n), (0, m_pad - m)] + [(0, 0)] * (value.ndim - 2)
-        fill = T_INVALID if key == "classes" else (1.0 if key in ("cos_i", "cos_o") else 0)
-        out[key] = np.pad(value, widths, constant_values=fill)
+    for key in _ROW_KEYS:
+        value = np.asarray(rows[key])
+        if (n_pad, m_pad) != (n, m):
+            widths = [(0, n_pad - n), (0, m_pad - m)] + [(0, 0)] * (value.ndim - 2)
+            fill = T_INVALID if key == "classes" else (1.0 if key in ("cos_i", "cos_o") else 0)
+            value = np.pad(value, widths, constant_values=fill)
+        value = value.reshape(n_pad // chunk, chunk, *value.shape[1:])
+        out[key] = np.ascontiguousarray(np.moveaxis(value, 1, -1))
     return out, chunk
 
 
-def _start(pd, ln_ps, ln_rough):
-    """Parameter rows `(pd_rgb, ps, ln roughness)`: reflectances linear (kept >= 0 by
-    projection in every step, so a channel at 0 can come back), roughness in logs."""
-    return jnp.concatenate([jnp.clip(pd, 0.0, 1.0), jnp.exp(ln_ps)[:, None], ln_rough[:, None]], axis=1)
+_weights = jax.jit(_noise_weights)
 
 
-def _lobe_and_slope(model, ln_rough, cos_i, cos_o, theta_r):
-    """Unit-ps specular BRDF `g` and `d ln g / d ln roughness`, per sample."""
-    _, spec_fn = brdf.MODELS[model]
-    g = spec_fn(1.0, ln_rough, cos_i, cos_o, theta_r)
-    r2 = jnp.exp(2.0 * ln_rough)
-    if model == "torrance-sparrow":
-        slope = theta_r**2 / r2
-    else:
-        c = jnp.maximum(jnp.cos(theta_r), brdf.COS_FLOOR)
-        slope = 2.0 * (jnp.sin(theta_r) / c) ** 2 / r2 - 2.0
-    return g, slope
+def _fit(rows, options, noise_floor, steps):
+    """`_fit_chunk` on `prepare_rows` output; per-row results `(N, ...)` as NumPy.
 
-
-def _analytic_lm_row(model, steps):
-    """Fixed-step projected LM for one row with the Jacobian written out.
-
-    The model `y_cj = E_j (pd_c / pi + ps g_j)` is linear in `pd_rgb` and `ps` and
-    nonlinear only in `ln roughness`; each pd column touches one channel, so
-    `J^T J` and `J^T r` are short weighted sums over the samples. After each step
-    the reflectances are projected onto `>= 0` (bounds, not a clip of the result).
-    """
-
-    def cost_of(p, d):
-        g, _ = _lobe_and_slope(model, p[4], d["cos_i"], d["cos_o"], d["theta_r"])
-        pred = d["e"][:, None] * (p[:3][None] / jnp.pi + (p[3] * g)[:, None])
-        r = jnp.where(d["use"][:, None], (d["y"] - pred) * d["w"], 0.0)
-        return jnp.sum(r * r)
-
-    def row(p0, d):
-        ww = jnp.where(d["use"][:, None], d["w"] ** 2, 0.0)  # (M, 3)
-        e = d["e"]
-        a = e / jnp.pi  # (M,) d pred / d pd_c (channel c only)
-
-        def body(_, state):
-            p, lam, cost = state
-            g, slope = _lobe_and_slope(model, p[4], d["cos_i"], d["cos_o"], d["theta_r"])
-            b = e * g  # (M,) d pred / d ps (all channels)
-            c = b * p[3] * slope  # (M,) d pred / d ln roughness
-            r = d["y"] - a[:, None] * p[:3][None] - (b * p[3])[:, None]  # (M, 3)
-            wsum = jnp.sum(ww, 1)
-            pdpd = jnp.sum(ww * (a * a)[:, None], 0)
-            pdps = jnp.sum(ww * (a * b)[:, None], 0)
-            pdro = jnp.sum(ww * (a * c)[:, None], 0)
-            psro = jnp.sum(wsum * b * c)
-            jtj = jnp.zeros((5, 5))
-            jtj = jtj.at[jnp.arange(3), jnp.arange(3)].set(pdpd)
-            jtj = jtj.at[:3, 3].set(pdps).at[3, :3].set(pdps)
-            jtj = jtj.at[:3, 4].set(pdro).at[4, :3].set(pdro)
-            jtj = jtj.at[3, 3].set(jnp.sum(wsum * b * b)).at[4, 4].set(jnp.sum(wsum * c * c))
-            jtj = jtj.at[3, 4].set(psro).at[4, 3].set(psro)
-            grad = jnp.concatenate([jnp.sum(ww * a[:, None] * r, 0),
-                                    jnp.stack([jnp.sum(ww * b[:, None] * r), jnp.sum(ww * c[:, None] * r)])])
-            scale = jnp.diag(jtj) + 1e-12 * (jnp.max(jnp.diag(jtj)) + 1e-300)
-            step = spd_solve(jtj + lam * jnp.diag(scale), grad)
-            step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
-            p_new = p + step
-            # Bounds: reflectances >= 0, albedo pd <= 1 (energy conservation; it also
-            # removes the false minima where a broad lobe is traded for pd > 1).
-            p_new = p_new.at[:4].set(jnp.maximum(p_new[:4], 0.0)).at[:3].set(jnp.minimum(p_new[:3], 1.0))
-            cost_new = cost_of(p_new, d)
-            ok = jnp.isfinite(cost_new) & (cost_new < cost)
-            return jnp.where(ok, p_new, p), jnp.where(ok, lam / 3.0, lam * 10.0), jnp.where(ok, cost_new, cost)
-
-        p, _, cost = jax.lax.fori_loop(0, steps, body, (p0, 1e-3, cost_of(p0, d)))
-        return p, cost
-
-    return row
-
-
-def _fit_chunk(rows, noise_floor, model, paper, solver, steps):
-    """Closed forms, two-start polish and covariance for one chunk of rows."""
-    pd0, has_diff = _diffuse_init(rows["y"], rows["e"], rows["use"], rows["classes"], rows["theta_r"], paper)
-    ln_ps0, ln_rough0, spec_ok, n_spec = _specular_init(model, rows, pd0, paper)
-    w = _noise_weights(rows["y"], rows["use"], noise_floor)
-    lm_data = {k: rows[k] for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
-    lm_data["w"] = w
-    residual = _make_residual(model)
-    p0 = _start(pd0, ln_ps0, ln_rough0)
-    if paper:
-        params = p0
-    else:
-        # Two starts per row -- the closed form and the roughness grid -- polished
-        # together; the lower final cost wins (broad, bright lobes have false minima).
-        starts = jnp.concatenate([p0, _start(*_grid_init(model, rows, w))])
-        both = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, a]), lm_data)
-        if solver == "lm":
-            polished, cost = jax.vmap(_analytic_lm_row(model, steps))(starts, both)
-        else:
-            polished = _solve_optimistix(residual, starts, both, steps)
-            cost = jax.vmap(lambda p, d: jnp.sum(residual(p, d) ** 2))(polished, both)
-        n = p0.shape[0]
-        cost = jnp.where(jnp.all(jnp.isfinite(polished), axis=1), cost, jnp.inf)
-        params = jnp.where((cost[n:] < cost[:n])[:, None], polished[n:], polished[:n])
-        spec_ok = spec_ok | jnp.isfinite(jnp.minimum(cost[:n], cost[n:]))
-    params = jnp.where(jnp.all(jnp.isfinite(params), axis=1, keepdims=True), params, p0)
-    # Rows the data cannot pin down may wander; keep them in range (they stay flagged).
-    params = jnp.clip(params, jnp.array([[0.0] * 4 + [np.log(1e-4)]]),
-                      jnp.array([[10.0] * 4 + [np.log(np.pi / 2)]]))
-    cov = covariance(residual, params, lm_data, 3 * rows["use"].sum(1))
-    return {"params": params, "cov": cov, "spec_ok": spec_ok, "n_spec": n_spec, "has_diff": has_diff, "w": w}
-
-
-@partial(jax.jit, static_argnames=("chunk", "model", "paper", "solver", "steps"))
-def _fit_padded(rows, noise_floor, chunk, model, paper, solver, steps):
-    """`_fit_chunk` over all rows, `lax.map` over chunks of `chunk` rows."""
-    n = rows["use"].shape[0]
-    split = jax.tree_util.tree_map(lambda a: a.reshape(n // chunk, chunk, *a.shape[1:]), rows)
-    out = jax.lax.map(lambda r: _fit_chunk(r, noise_floor, model, paper, solver, steps), split)
-    return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
+    One jitted call per chunk rather than `lax.map` inside one: consecutive calls are
+    dispatched asynchronously and run side by side on the CPU's cores (1.5x faster on
+    two cores than the loop compiled into one program)."""
+    n_rows = np.shape(rows["use"])[0]
+    chunks, _ = _chunked(rows)
+    outs = [_fit_chunk_jit({k: v[i] for k, v in chunks.items()}, float(noise_floor), model=options.model,
+                           paper=options.paper, solver=options.solver, steps=steps)
+            for i in range(len(chunks["use"]))]
+    return {k: np.concatenate([np.asarray(o[k]) for o in outs], axis=-1).T[:n_rows] for k in outs[0]}
 
 
 class RowFit(dict):
@@ -493,13 +556,9 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     `noise_floor`: absolute radiance noise floor of the weights (e.g. the
     quantisation step / sqrt(12)).
     """
-    n_rows, n_obs = np.shape(rows["use"])
-    padded, chunk = _pad_rows(rows)
-    out = _fit_padded({k: jnp.asarray(v) for k, v in padded.items()}, float(noise_floor), chunk,
-                      options.model, options.paper, options.solver, options.steps)
-    params, cov = np.asarray(out["params"])[:n_rows], np.asarray(out["cov"])[:n_rows]
-    spec_ok, n_spec, has_diff = (np.asarray(out[k])[:n_rows] for k in ("spec_ok", "n_spec", "has_diff"))
-    var = np.diagonal(cov, axis1=1, axis2=2)
+    out = _fit(rows, options, noise_floor, options.steps)
+    params, var = out["params"], out["var"]
+    spec_ok, n_spec, has_diff = out["spec_ok"], out["n_spec"], out["has_diff"]
     sd = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
     rough = np.exp(params[:, 4])
     # The paper needs two T_spec samples; the full-model fit can also pin the lobe down
@@ -510,7 +569,7 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     std_rough = np.where(np.isinf(sd[:, 4]), np.inf, rough * np.where(np.isinf(sd[:, 4]), 0.0, sd[:, 4]))
     return RowFit(pd=params[:, :3], ps=params[:, 3], roughness=rough, std_pd=sd[:, :3], std_ps=sd[:, 3],
                   std_roughness=std_rough, identifiable=identifiable, has_diffuse_sample=has_diff,
-                  weights=out["w"][:n_rows, :n_obs])
+                  weights=np.asarray(_weights(rows["y"], rows["use"], noise_floor)))
 
 
 def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None) -> Estimate:
