@@ -114,19 +114,25 @@ _CHUNK = 200_000
 
 @jax.jit
 def _splat_chunk(vidx, bary, wi, light, vertices, normals, cam):
-    """Splat weights `(C, 3)` of a chunk of photons (see `Splat`)."""
-    nu = normals[vidx]  # (C, 3, 3)
-    ci = jnp.sum(nu * wi[:, None, :], axis=-1)
-    to_cam = cam[vidx, light[:, None]] - vertices[vidx]
-    co_len = jnp.sqrt(jnp.sum(to_cam * to_cam, axis=-1))
-    wo = to_cam / jnp.maximum(co_len, 1e-30)[..., None]
-    co = jnp.sum(nu * wo, axis=-1)
-    h = wi[:, None, :] + wo
-    cos_h = jnp.sum(nu * h, axis=-1)
-    sin_h = jnp.sqrt(jnp.sum(jnp.cross(nu, h) ** 2, axis=-1))
+    """Splat weights of a chunk of `C` photons (see `Splat`), component-major:
+    `vidx`, `bary`, `wi` `(3, C)`, `light` `(C,)`, `vertices`, `normals` `(3, N)`,
+    `cam` `(3, N * M)`. Returns `(w_diffuse, w_lobe, tan2)`, each `(3, C)` (one
+    row per vertex of the face). (XLA on CPU runs this layout 4x faster than
+    `(C, 3, 3)` arrays.)"""
+    m = cam.shape[1] // vertices.shape[1]
+    row = vidx * m + light[None, :]
+    nu = [normals[c][vidx] for c in range(3)]
+    to_cam = [cam[c][row] - vertices[c][vidx] for c in range(3)]
+    length = jnp.sqrt(to_cam[0] ** 2 + to_cam[1] ** 2 + to_cam[2] ** 2)
+    wo = [t / jnp.maximum(length, 1e-30) for t in to_cam]
+    h = [wi[c][None, :] + wo[c] for c in range(3)]
+    ci = nu[0] * wi[0][None, :] + nu[1] * wi[1][None, :] + nu[2] * wi[2][None, :]
+    co = nu[0] * wo[0] + nu[1] * wo[1] + nu[2] * wo[2]
+    cos_h = nu[0] * h[0] + nu[1] * h[1] + nu[2] * h[2]
+    cx, cy, cz = nu[1] * h[2] - nu[2] * h[1], nu[2] * h[0] - nu[0] * h[2], nu[0] * h[1] - nu[1] * h[0]
     front = ci > 0
     valid = front & (co > 0) & (cos_h > 0)
-    tan2 = jnp.where(valid, (sin_h / jnp.where(valid, cos_h, 1.0)) ** 2, 1e30)
+    tan2 = jnp.where(valid, (cx * cx + cy * cy + cz * cz) / jnp.where(valid, cos_h * cos_h, 1.0), 1e30)
     cif = jnp.maximum(ci, brdf.COS_FLOOR)
     cof = jnp.maximum(co, brdf.COS_FLOOR)
     w_lobe = jnp.where(valid, bary / (4.0 * jnp.pi * jnp.sqrt(cif * cof)), 0.0)
@@ -140,28 +146,33 @@ def splat_geometry(vertices, faces, normals, cam_pos, face, bary, direction, lig
     Geometry is evaluated in float32."""
     n, m = cam_pos.shape[:2]
     f32 = np.float32
-    dev_v, dev_n, dev_c = (jnp.asarray(x, f32) for x in (vertices, normals, cam_pos))
-    vidx = np.asarray(faces)[face].astype(np.int32)
-    host = (vidx, np.asarray(bary, f32), np.asarray(direction, f32), np.asarray(light, np.int32))
+    dev_v, dev_n = (jnp.asarray(np.asarray(x).T, f32) for x in (vertices, normals))
+    dev_c = jnp.asarray(np.asarray(cam_pos, f32).reshape(n * m, 3).T)
+    vidx = np.ascontiguousarray(np.asarray(faces)[face].T.astype(np.int32))  # (3, P)
+    light = np.asarray(light, np.int32)
+    host = (vidx, np.ascontiguousarray(np.asarray(bary, f32).T), np.ascontiguousarray(np.asarray(direction, f32).T),
+            light)
     p = len(face)
-    out = [np.empty((p, 3), f32) for _ in range(3)]
+    out = [np.empty((3, p), f32) for _ in range(3)]
     for s in range(0, p, _CHUNK):
         e = min(s + _CHUNK, p)
         pad = _CHUNK - (e - s)
-        args = [np.pad(x[s:e], [(0, pad)] + [(0, 0)] * (x.ndim - 1)) if pad else x[s:e] for x in host]
+        args = [np.pad(x[..., s:e], [(0, 0)] * (x.ndim - 1) + [(0, pad)]) for x in host]
         res = _splat_chunk(*args, dev_v, dev_n, dev_c)
         for o, r in zip(out, res):
-            o[s:e] = np.asarray(r)[: e - s]
-    w_d, w_l, t2 = (o.ravel() for o in out)
+            o[:, s:e] = np.asarray(r)[:, : e - s]
+    # entries in photon-major order: entry 3 j + k is photon j's k-th face vertex
+    w_d, w_l, t2 = (np.ascontiguousarray(o.T).ravel() for o in out)
+    flat_v = np.ascontiguousarray(vidx.T).ravel()
     keep = np.flatnonzero(w_d > 0)
-    row = vidx.ravel()[keep].astype(np.int64) * m + host[3][keep // 3]
+    row = flat_v[keep].astype(np.int64) * m + light[keep // 3]
     # Stable counting sort by row (scipy's COO -> CSR conversion), 2-3x faster than argsort.
     order = keep[sp.csr_matrix((np.ones(len(keep), np.int8), (row, np.arange(len(keep)))),
                                shape=(n * m, max(len(keep), 1))).indices]
     return Splat(
         photon=(order // 3).astype(np.int32),
-        vertex=vidx.ravel()[order],
-        row=(vidx.ravel()[order].astype(np.int64) * m + host[3][order // 3]).astype(np.int32),
+        vertex=flat_v[order],
+        row=(flat_v[order].astype(np.int64) * m + light[order // 3]).astype(np.int32),
         w_diffuse=w_d[order],
         w_lobe=w_l[order],
         tan2=t2[order],
