@@ -16,6 +16,7 @@ from jaxrefl.mesh import area_normal_sums
 from jaxrefl.radiosity import (RadiosityOptions, direct_irradiance, estimate_radiosity, inverse_radiosity,
                                light_configs, solve_radiosity)
 from jaxrefl.raycast import RayCaster
+from jaxrefl.reports import fold_profile
 
 
 def rectangle(origin, eu, ev, n=12):
@@ -204,7 +205,7 @@ def test_light_configs_bin_per_point_lights():
     np.testing.assert_allclose(exact.positions[exact.index], pos)
 
 
-def test_inverse_radiosity_removes_interreflection_on_the_fold():
+def test_inverse_radiosity_removes_interreflection_on_the_fold(tmp_path):
     """§4.3 / Figure 16: white-paper Object E on the scanner, rendered with global
     illumination by the path tracer. Within 2 cm of the fold Method II's mean pd
     error is <= 3 % while Method I's is at least 3x larger."""
@@ -212,9 +213,39 @@ def test_inverse_radiosity_removes_interreflection_on_the_fold():
                         global_illumination=True, samples=1024, seed=0)
     near = np.abs(fold_coordinate(scan.vertices)) < 0.02
     errors = {}
-    for name, est in (("I", estimate_local(scan)), ("II", estimate_radiosity(scan, RadiosityOptions(rays=256)))):
+    results = {"I": estimate_local(scan), "II": estimate_radiosity(scan, RadiosityOptions(rays=256))}
+    for name, est in results.items():
         rel = (np.abs(est.pd - scan.true_pd) / scan.true_pd).mean(1)
         errors[name] = rel[near & est.pd_measured].mean()
         assert np.all(np.isfinite(est.pd)) and np.all(np.isfinite(est.ps)) and np.all(np.isfinite(est.roughness))
     assert errors["II"] <= 0.03, errors
     assert errors["I"] >= 3 * errors["II"], errors
+    # the Figure 16 analogue reports the same numbers
+    profile = fold_profile(scan, results, str(tmp_path / "fold.png"))
+    assert (tmp_path / "fold.png").stat().st_size > 0 and np.array(profile["II"]["profile"]).shape == (30, 3)
+    assert profile["II"]["near_fold_mean_rel_error"] == pytest.approx(errors["II"])
+
+
+def test_cli_estimate_radiosity(tmp_path):
+    """`jaxrefl estimate --method radiosity` writes the same result format as Method I, its
+    summary carries the fixed point's statistics; bad input is one line, no file."""
+    import json
+
+    from tests.test_cli import assert_one_line_error, jaxrefl
+
+    scan = tmp_path / "e.npz"
+    assert jaxrefl("synth", "E", "--setup", "diffuse", "--rig", "scanner", "--lights", "24,9,0,50,59", "--gi",
+                   "--samples", 16, "--resolution", 24, "--out", scan).returncode == 0
+    out = tmp_path / "e_II.npz"
+    r = jaxrefl("estimate", scan, "--method", "radiosity", "--rays", 64, "--out", out, "--json")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["method"] == "radiosity" and summary["form_factors"]["rays"] == 64
+    assert summary["light_configurations"] >= 5 and len(summary["outer_iterations"]) == 3
+    assert all(h["fixed_point_residual"] < 1e-5 for h in summary["outer_iterations"])
+    with np.load(out) as z:
+        assert {"pd", "ps", "sigma", "status", "std_pd"} <= set(z.files)
+        assert json.loads(str(z["meta"]))["method"] == "radiosity" and np.all(np.isfinite(z["pd"]))
+    assert_one_line_error(jaxrefl("estimate", scan, "--method", "radiosity", "--rays", 0,
+                                  "--out", tmp_path / "x.npz"), "rays")
+    assert not (tmp_path / "x.npz").exists()
