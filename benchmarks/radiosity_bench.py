@@ -1,8 +1,8 @@
 """Benchmark: Method II's form factors and inverse-radiosity fixed point.
 
-Run: `python -m benchmarks.radiosity_bench [--resolution 96] [--rays 64 256]`.
+Run: `python -m benchmarks.radiosity_bench [--resolution 98] [--rays 64 256]`.
 
-1. Form factors of Object A at about 20k vertex patches: `formfactors.form_factors`
+1. Form factors of Object A at about 21k vertex patches (resolution 98): `formfactors.form_factors`
    (ray generation, threaded Embree casts, sparse assembly), against raw embreex
    `run` (one thread, first hits only) on the very same rays, in the same run.
    Reported: rays per second of both and their ratio, seconds, non-zeros and
@@ -50,7 +50,7 @@ def main(argv=None):
     from jaxrefl.raycast import RayCaster
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--resolution", type=int, default=96)
+    parser.add_argument("--resolution", type=int, default=98)
     parser.add_argument("--rays", type=int, nargs="+", default=[64, 256])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default="benchmarks/RESULTS_radiosity.md")

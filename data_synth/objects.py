@@ -273,13 +273,6 @@ def _mesh_sdf(prims: list[_Prim], resolution: int):
     v, f = _clean(v, f.astype(np.int64), h)
 
     v = _project(prims, v, h)
-    # Projection can flatten a sliver face; drop those (the loader rejects zero-area faces).
-    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    f = f[area2 > 1e-10 * float(np.linalg.norm(v.max(0) - v.min(0))) ** 2]
-    used = np.unique(f)
-    remap = np.full(len(v), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    v, f = v[used], remap[f]
     g = _gradient(prims, v, 1e-3 * h)
     n = g / np.linalg.norm(g, axis=1, keepdims=True)
 

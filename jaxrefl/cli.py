@@ -2,8 +2,9 @@
 
 Subcommands: `synth` (make a synthetic scan bundle), `render` (a picture of a
 scan), `info` (validate and summarise a scan), `select-lights` (choose capture
-lights, §2.2), `estimate` (per-point reflectance, Method I), `table1` (the
-paper's Table 1 on the synthetic objects) and `demo` (the main job on the
+lights, §2.2), `estimate` (per-point reflectance, Methods I and II), `table1` (the
+paper's Table 1 on the synthetic objects), `capture` (one image per planned
+light through a serial light rig, resumable) and `demo` (the main job on the
 built-in synthetic default). Bad input ends with one line on stderr naming the
 field, exit code 2, and no output file.
 """
@@ -105,19 +106,63 @@ def _add_table1(sub):
 def _add_estimate(sub):
     p = sub.add_parser("estimate", help="estimate per-point reflectance from a scan bundle")
     p.add_argument("scan", help="scan bundle (.npz) with radiance")
-    p.add_argument("--method", choices=["local"], default="local",
-                   help="local: Method I, inverse local rendering (§3)")
+    p.add_argument("--method", choices=["local", "radiosity"], default="local",
+                   help="local: Method I, inverse local rendering (§3); radiosity: Method II, inverse "
+                        "radiosity, diffuse interreflections removed (§4)")
     p.add_argument("--model", choices=["torrance-sparrow", "ward"], default="torrance-sparrow")
     p.add_argument("--out", required=True, help="result file to write (.npz)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--paper", action="store_true",
                    help="the paper's estimator: Eq. 5 single best diffuse sample, Eq. 7 from two samples")
     p.add_argument("--window", type=int, default=5, help="interpolation window W (a (W-1)/2-ring)")
-    p.add_argument("--steps", type=int, default=15, help="Levenberg-Marquardt steps")
+    p.add_argument("--steps", type=int, default=15, help="Newton steps of the polish in ln roughness (solver lm)")
     p.add_argument("--solver", choices=["lm", "optimistix"], default="lm")
     p.add_argument("--min-snr", type=float, default=3.0, help="ps / std(ps) needed to call it measured")
     p.add_argument("--pool", action="store_true",
                    help="experimental: points without their own lobe share it with same-colour neighbours")
+    g = p.add_argument_group("radiosity (Method II)")
+    g.add_argument("--rays", type=int, default=256, help="form-factor rays per patch (vertex)")
+    g.add_argument("--light-bin", type=float, default=0.1,
+                   help="per-point lights: bin size [m] of the light configurations for later bounces")
+    g.add_argument("--outer", type=int, default=3, help="alternations of pd and the specular part")
+
+
+def _add_capture(sub):
+    p = sub.add_parser("capture", help="one image per planned light through a serial light rig (resumable)")
+    p.add_argument("plan", help="plan JSON: {\"lights\": [...]}, a list, or select-lights --json output")
+    p.add_argument("--out", required=True, help="session folder (images + manifest.json); rerun to resume")
+    p.add_argument("--port", default=None, help="serial device of the light controller, e.g. /dev/ttyUSB0")
+    p.add_argument("--simulate", nargs="?", const="", default=None, metavar="FAULTS",
+                   help="use a simulated controller on a pty instead of --port; optional faults, e.g. "
+                        "garble_rate=0.1,seed=1 or disconnect_after=20")
+    p.add_argument("--camera-cmd", default=None,
+                   help="shell template: must write the image to {out} (a temporary path) for light {light}; "
+                        "with --simulate the default writes a small PNG")
+    p.add_argument("--ext", default=".png", help="image file extension")
+    p.add_argument("--baud", type=int, default=115200)
+    p.add_argument("--timeout", type=float, default=0.5, help="reply timeout per try [s]")
+    p.add_argument("--retries", type=int, default=3, help="re-sends after a timeout or garbled reply")
+    p.add_argument("--backoff", type=float, default=0.05, help="wait before the first re-send [s], doubling")
+    p.add_argument("--settle-timeout", type=float, default=10.0, help="time a positioner may take [s]")
+    p.add_argument("--camera-timeout", type=float, default=60.0, help="time the camera command may take [s]")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+
+
+def _add_fold(sub):
+    p = sub.add_parser("fold", help="pd across the fold of Object E for one or more results (Fig. 12/16/21)")
+    p.add_argument("scan", help="the Object E scan bundle the results were estimated from")
+    p.add_argument("results", nargs="+", help="result files; label one as LABEL=PATH")
+    p.add_argument("--out", required=True, help="figure to write (.png)")
+    p.add_argument("--near", type=float, default=0.02, help="half-width [m] of the band around the fold")
+    p.add_argument("--json", action="store_true", help="print the errors and profiles as JSON")
+
+
+def _add_figure18(sub):
+    p = sub.add_parser("figure18", help="Figure 18 analogue: Methods I and II on Objects A-D with interreflections")
+    p.add_argument("--out", required=True, help="folder for figure18.md, figure18.json and the maps")
+    p.add_argument("--resolution", type=int, default=48)
+    p.add_argument("--samples", type=int, default=64, help="path-traced samples per observation")
+    p.add_argument("--rays", type=int, default=256, help="form-factor rays per vertex")
 
 
 def _add_info(sub):
@@ -227,21 +272,31 @@ def cmd_estimate(args) -> int:
 
     options = LocalOptions(model=args.model, paper=args.paper, steps=args.steps, window=args.window,
                            min_snr=args.min_snr, solver=args.solver, pool=args.pool)
+    if args.rays < 1 or args.outer < 1 or not args.light_bin >= 0:
+        raise ValueError("rays, outer: must be >= 1; light-bin: must be >= 0")
     t0 = time.perf_counter()
     scan = load_scan(args.scan)
     load_seconds = time.perf_counter() - t0
-    est = estimate_local(scan, options)
+    if args.method == "radiosity":
+        from .radiosity import RadiosityOptions, estimate_radiosity
+
+        est = estimate_radiosity(scan, RadiosityOptions(rays=args.rays, light_bin=args.light_bin, outer=args.outer,
+                                                        paper=args.paper, local=options))
+    else:
+        est = estimate_local(scan, options)
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
     save_result(args.out, est)
     observed = max(int(est.pd_measured.sum()), 1)
     summary = {
-        "method": "local", "model": args.model, "out": args.out,
+        "method": args.method, "model": args.model, "out": args.out,
         "seconds": est.meta["seconds"],
         "points": int(len(est.status)),
         "coverage": float(np.sum(est.status == 0) / observed),
         "status_counts": {name: int(np.sum(est.status == code))
                           for code, name in enumerate(("measured", "interpolated", "unresolved"))},
     }
+    summary.update({k: est.meta[k] for k in ("outer_iterations", "form_factors", "light_configurations")
+                    if k in est.meta})
     if scan.true_pd is not None:
         summary["errors"] = truth_errors(est, scan)
     if args.json:
@@ -249,6 +304,253 @@ def cmd_estimate(args) -> int:
     else:
         print(f"wrote {args.out}: {summary['coverage']:.1%} of observed points measured "
               f"({summary['status_counts']})")
+    return 0
+
+
+def cmd_capture(args) -> int:
+    from .capture import CaptureError, capture, load_plan, shell_camera
+    from .rig.serial import LinkOptions, RigError
+    from .rig.simulator import Faults, Simulator
+
+    if (args.port is None) == (args.simulate is None):
+        raise ValueError("port: give exactly one of --port and --simulate")
+    if args.camera_cmd is None and args.simulate is None:
+        raise ValueError("camera-cmd: required with --port")
+    plan = load_plan(args.plan)
+    options = LinkOptions(baudrate=args.baud, timeout=args.timeout, retries=args.retries, backoff=args.backoff,
+                          settle_timeout=args.settle_timeout)
+    camera = shell_camera(args.camera_cmd, args.camera_timeout) if args.camera_cmd is not None else None
+    sim = Simulator(max(60, max(plan.lights) + 1), Faults.parse(args.simulate)) if args.simulate is not None else None
+    try:
+        summary = capture(plan, args.out, sim.port if sim else args.port, camera or sim.camera, options=options,
+                          ext=args.ext, progress=_progress())
+    except (RigError, CaptureError, KeyboardInterrupt) as exc:
+        saved, total = getattr(exc, "saved", (0, len(plan.lights)))
+        print(f"jaxrefl capture: error: {str(exc) or 'interrupted'}; {saved} of {total} images saved in {args.out}, "
+              "run the same command to resume", file=sys.stderr)
+        return 3
+    finally:
+        if sim is not None:
+            sim.stop()
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"{args.out}: {summary['captured']} images captured, {summary['recovery']['entries_verified']} "
+              f"already there; {'complete' if summary['complete'] else 'incomplete'}")
+    return 0
+
+
+def _add_ingest(sub):
+    p = sub.add_parser("ingest", help="photographs of a capture folder (rig.json + mesh + images) to a scan bundle")
+    p.add_argument("folder", help="capture folder holding rig.json (see README: capture folder)")
+    p.add_argument("--out", required=True, help="scan bundle to write (.npz)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+
+
+def _add_relight(sub):
+    p = sub.add_parser("relight", help="render an estimated object under a new point light")
+    p.add_argument("result", help="result file (.npz) from jaxrefl estimate")
+    p.add_argument("scan", help="the scan bundle the result was estimated from (geometry)")
+    p.add_argument("--light", required=True, help="light position X,Y,Z [m] (--light=X,Y,Z when X < 0)")
+    p.add_argument("--intensity", type=float, default=None,
+                   help="radiant intensity [W/sr] (default: the scan's first light)")
+    p.add_argument("--camera", default=None,
+                   help="EX,EY,EZ[,TX,TY,TZ]: eye [m] and target (default: the object's centre); "
+                        "default camera: the scan's camera for its first light")
+    p.add_argument("--width", type=int, default=640, help="image width [px] of a fitted camera")
+    p.add_argument("--height", type=int, default=480, help="image height [px] of a fitted camera")
+    p.add_argument("--model-gi", choices=["none", "radiosity", "photon"], default="none",
+                   help="interreflections added to the direct light")
+    p.add_argument("--out", required=True, help="image to write: .png (tone-mapped sRGB) or .npy (linear)")
+    p.add_argument("--reference", default=None,
+                   help="'truth' (the scan's ground truth, same light and camera) or an image: .npy linear "
+                        "radiance, or .png (sRGB, scaled to the relit image by least squares)")
+    p.add_argument("--compare", default=None, help="write relit | reference | difference to this PNG")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+
+
+def _add_maps(sub):
+    p = sub.add_parser("maps", help="reflectance maps of a result (the paper's Figures 10-11)")
+    p.add_argument("result", help="result file (.npz)")
+    p.add_argument("scan", help="the scan bundle it was estimated from")
+    p.add_argument("--out", required=True, help="PNG to write")
+    p.add_argument("--view", choices=["auto", "cylindrical", "camera"], default="auto",
+                   help="cylindrical unwrap (auto for scanner bundles) or the scan's camera")
+    p.add_argument("--width", type=int, default=512, help="image width [px]")
+
+
+def _add_export(sub):
+    p = sub.add_parser("export", help="a result as a PLY mesh with per-vertex attributes")
+    p.add_argument("result", help="result file (.npz)")
+    p.add_argument("scan", help="the scan bundle it was estimated from")
+    p.add_argument("--out", required=True, help="PLY file to write")
+
+
+def _numbers(text, name, counts):
+    try:
+        values = [float(t) for t in str(text).split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in counts or not all(np.isfinite(values)):
+        raise ValueError(f"{name}: expected {' or '.join(map(str, counts))} comma-separated numbers, got {text!r}")
+    return np.array(values)
+
+
+def _result_and_scan(args):
+    from .io import load_scan
+    from .result import load_result
+
+    est, scan = load_result(args.result), load_scan(args.scan)
+    if len(est.pd) != scan.n_points:
+        raise ValueError(f"result: {len(est.pd)} points, but the scan has {scan.n_points} vertices")
+    return est, scan
+
+
+def cmd_ingest(args) -> int:
+    from .ingest import ingest
+    from .io import save_scan
+
+    scan = ingest(args.folder)
+    save_scan(args.out, scan)
+    report = {"out": args.out, "points": scan.n_points, "observations": scan.n_lights,
+              "valid_fraction": float(scan.valid.mean()), "masked_samples": scan.meta["masked_samples"]}
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(f"wrote {args.out}: {scan.n_points} points x {scan.n_lights} observations, "
+              f"{report['valid_fraction']:.1%} valid; masked {report['masked_samples']}")
+    return 0
+
+
+def cmd_relight(args) -> int:
+    from . import relight as rl
+    from . import render
+    from .ingest import read_image, srgb_to_linear
+    from .io import atomic_write
+    from .raycast import RayCaster
+
+    if args.compare and not args.reference:
+        raise ValueError("compare: needs --reference")
+    if not str(args.out).lower().endswith((".png", ".npy")):
+        raise ValueError(f"out: must end in .png or .npy, got {args.out!r}")
+    est, scan = _result_and_scan(args)
+    light = _numbers(args.light, "light", (3,))
+    intensity = float(scan.intensities()[0]) if args.intensity is None else args.intensity
+    if args.width < 2 or args.height < 2:
+        raise ValueError("width: width and height must be >= 2")
+    if args.camera is None:
+        camera = rl.scan_camera(scan, args.width, args.height)
+    else:
+        c = _numbers(args.camera, "camera", (3, 6))
+        camera = rl.fit_camera(scan.vertices, c[:3], c[3:] if len(c) == 6 else None, args.width, args.height)
+    caster = RayCaster(scan.vertices, scan.faces)
+    radiance = rl.relight(scan.vertices, scan.faces, scan.normals, est, light, intensity, camera.center,
+                          args.model_gi, caster)
+    image = rl.picture(caster, scan.faces, radiance, camera)
+    reference, label, summary = None, None, {}
+    if args.reference == "truth":
+        truth = rl.relight(scan.vertices, scan.faces, scan.normals, rl.truth_estimate(scan), light, intensity,
+                           camera.center, args.model_gi, caster)
+        reference, label = rl.picture(caster, scan.faces, truth, camera), "truth"
+    elif args.reference:
+        try:
+            values, top = read_image(args.reference)
+        except OSError as exc:
+            raise ValueError(f"reference: {exc}") from None
+        except ValueError as exc:
+            raise ValueError(f"reference: {exc}") from None
+        rgb = values[..., :3] if values.shape[2] >= 3 else np.repeat(values[..., :1], 3, axis=-1)
+        on = np.isfinite(image).all(axis=-1)
+        if rgb.shape != image.shape:
+            raise ValueError(f"reference: {rgb.shape[1]}x{rgb.shape[0]} pixels, the relit image "
+                             f"{image.shape[1]}x{image.shape[0]}")
+        if top is not None:  # a photograph: sRGB, unknown exposure
+            rgb = srgb_to_linear(rgb)
+            scale = float(np.sum(image[on] * rgb[on]) / max(np.sum(rgb[on] ** 2), 1e-300))
+            rgb, summary["reference_scale"] = rgb * scale, scale
+        reference, label = np.where(on[..., None], rgb, np.nan), "reference"
+    if reference is not None:
+        summary["errors"] = rl.image_errors(image, reference)
+    finite = np.isfinite(reference if reference is not None else image).all(axis=-1)
+    if str(args.out).lower().endswith(".npy"):
+        atomic_write(args.out, lambda fh: np.save(fh, np.where(np.isfinite(image), image, 0.0)))
+    else:
+        base = reference if reference is not None else image
+        top = float(np.percentile(base[finite], 99.5)) if finite.any() else 1.0
+        render.save_png(args.out, render.to_srgb8(image, exposure=1.0 / top if top > 0 else 1.0))
+    if args.compare:
+        render.comparison_figure(args.compare, image, reference, labels=("relit", label),
+                                 title=f"{est.model}, model-gi {args.model_gi}, light {light.round(3).tolist()}")
+    summary.update(out=args.out, compare=args.compare, width=camera.width, height=camera.height,
+                   camera=camera.center.round(6).tolist(), light=light.tolist(), intensity=intensity,
+                   model_gi=args.model_gi)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        err = summary.get("errors")
+        print(f"wrote {args.out} ({camera.width}x{camera.height})"
+              + (f"; RMS relative error against {label} {err['rms_relative']:.2%}" if err else ""))
+    return 0
+
+
+def cmd_maps(args) -> int:
+    from . import render
+    from .raycast import RayCaster
+    from .relight import scan_camera
+
+    est, scan = _result_and_scan(args)
+    caster = RayCaster(scan.vertices, scan.faces)
+    view = args.view
+    if view == "auto":
+        view = "cylindrical" if scan.meta.get("rig", {}).get("type") == "cylindrical-scanner" else "camera"
+    if view == "cylindrical":
+        hits, shape = render.cylindrical_hits(caster, width=args.width)
+    else:
+        hits, shape = render.camera_hits(caster, scan_camera(scan, args.width, max(2, args.width * 3 // 4)))
+    render.reflectance_figure(args.out, hits, shape, scan.faces, est,
+                              title=f"{est.meta.get('method', 'estimate')} ({est.model})")
+    print(f"wrote {args.out} ({view} view)")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from .export import export_ply
+
+    est, scan = _result_and_scan(args)
+    export_ply(args.out, scan.vertices, scan.faces, scan.normals, est)
+    print(f"wrote {args.out}: {scan.n_points} vertices, {len(scan.faces)} faces")
+    return 0
+
+
+def cmd_fold(args) -> int:
+    from .io import load_scan
+    from .reports import fold_profile
+    from .result import load_result
+
+    scan = load_scan(args.scan)
+    results = {}
+    for item in args.results:
+        label, _, path = item.rpartition("=")
+        est = load_result(path)
+        if len(est.pd) != scan.n_points:
+            raise ValueError(f"{path}: {len(est.pd)} points, the scan has {scan.n_points}")
+        results[label or est.meta.get("method", path)] = est
+    out = fold_profile(scan, results, args.out, near=args.near)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        for label in results:
+            print(f"{label}: mean pd error within {args.near * 100:.0f} cm of the fold "
+                  f"{out[label].get('near_fold_mean_rel_error')}")
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_figure18(args) -> int:
+    from .reports import figure18
+
+    print(figure18(args.out, resolution=args.resolution, samples=args.samples, rays=args.rays,
+                   progress=_progress())["markdown"])
     return 0
 
 
@@ -288,8 +590,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jaxrefl", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command")
-    for add in (_add_synth, _add_render, _add_info, _add_select_lights, _add_estimate, _add_table1,
-                _add_demo):
+    for add in (_add_synth, _add_render, _add_info, _add_select_lights, _add_estimate, _add_fold, _add_figure18, _add_table1,
+                _add_demo, _add_capture):
+        add(sub)
+    for add in (_add_ingest, _add_relight, _add_maps, _add_export):
         add(sub)
     args = parser.parse_args(argv)
     if args.version:
@@ -302,7 +606,9 @@ def main(argv=None) -> int:
         return 2
     _enable_compilation_cache()
     commands = {"synth": cmd_synth, "render": cmd_render, "info": cmd_info, "demo": cmd_demo,
-                "select-lights": cmd_select_lights, "table1": cmd_table1, "estimate": cmd_estimate}
+                "select-lights": cmd_select_lights, "table1": cmd_table1, "estimate": cmd_estimate,
+                "capture": cmd_capture, "fold": cmd_fold, "figure18": cmd_figure18}
+    commands.update({"ingest": cmd_ingest, "relight": cmd_relight, "maps": cmd_maps, "export": cmd_export})
     try:
         return commands[args.command](args)
     except (ValueError, FileNotFoundError, IsADirectoryError) as exc:
