@@ -94,6 +94,9 @@ class PhotonPaths(NamedTuple):
 # Vectors are tuples of three arrays (x, y, z) and per-face data is (3, C): XLA on
 # CPU runs this structure-of-arrays form 3-5x faster than (C, 3) arrays.
 
+#: Bounce levels whose power products are unrolled in the replay; deeper ones run in a loop.
+_UNROLLED_LEVELS = 8
+
 #: Photons per jitted sampling call (the last chunk of a level is padded).
 _CHUNK = 200_000
 
@@ -423,13 +426,15 @@ def _check_params(params, n, name):
 # -- path replay (jnp) ----------------------------------------------------------------
 
 
-def photon_powers(ev_vertices, ev_bary, ev_cos_i, ev_cos_o, ev_theta_h, ev_weight, light, parent, emitted,
-                  pd, ps, alpha, offsets):
+def photon_powers(ev_vertices, ev_bary, ev_cos_i, ev_cos_o, ev_theta_h, ev_weight, light, parent, bounce,
+                  emitted, pd, ps, alpha, offsets, depth):
     """Photon powers `(3, P)` [W] (channel-major) under reflectance `pd` `(N, 3)`,
     `ps` `(N,)`, `alpha` `(N,)`: the emitted power times the product of every
     event's `ward * ev_weight` along the photon's path. Event arrays as in
-    `PhotonPaths` but component-major: `ev_vertices`, `ev_bary` `(3, P)`;
-    `offsets` the static `level_offsets`."""
+    `PhotonPaths` but component-major: `ev_vertices`, `ev_bary` `(3, P)`.
+    `offsets` (static) bound bounce levels `1..H` (`level_offsets` or a padded
+    version); rows from `offsets[-1]` on hold the deeper levels, up to the static
+    `depth`."""
     ps_e = _interp(ev_vertices, ev_bary, ps)
     a_e = _interp(ev_vertices, ev_bary, alpha)
     spec = brdf.ward_specular(ps_e, jnp.log(jnp.maximum(a_e, jnp.finfo(a_e.dtype).tiny)), ev_cos_i, ev_cos_o,
@@ -440,12 +445,29 @@ def photon_powers(ev_vertices, ev_bary, ev_cos_i, ev_cos_o, ev_theta_h, ev_weigh
     ratio = jnp.stack([(jnp.where(ok, _interp(ev_vertices, ev_bary, pd[:, c]) / jnp.pi, 0.0) + spec) * ev_weight
                        for c in range(3)])
     out = jnp.zeros_like(ratio)
-    for b in range(1, len(offsets)):
+    head = len(offsets) - 1
+    for b in range(1, head + 1):
         s, e = offsets[b - 1], offsets[b]
         if e == s:
             continue
         prev = emitted[light[s:e]][None, :] if b == 1 else out[:, parent[s:e]]
         out = out.at[:, s:e].set(prev * ratio[:, s:e])
+    t0 = offsets[-1]
+    if t0 < ratio.shape[1]:
+        # The long, thin tail of deep bounces: one masked step per level over the tail
+        # block in a loop with static bounds (unrolled, 60 furnace levels took seconds
+        # to compile; dynamic bounds would not differentiate). Tail parents lie in the
+        # last unrolled level or in the tail itself.
+        h0 = offsets[-2]
+        t_parent, t_ratio, t_bounce = parent[t0:] - h0, ratio[:, t0:], bounce[t0:]
+        last = out[:, h0:t0]
+
+        def level_step(b, tail):
+            src = jnp.concatenate([last, tail], axis=1)
+            return jnp.where((t_bounce == b)[None, :], src[:, t_parent] * t_ratio, tail)
+
+        tail = jax.lax.fori_loop(head + 1, max(depth, head) + 1, level_step, out[:, t0:])
+        out = out.at[:, t0:].set(tail)
     return out
 
 
@@ -453,6 +475,7 @@ class _Static(NamedTuple):
     offsets: tuple
     n_points: int
     n_lights: int
+    depth: int
     n_levels: int
 
 
@@ -467,8 +490,10 @@ class _Data(NamedTuple):
     ev_weight: jax.Array
     light: jax.Array
     parent: jax.Array
+    bounce: jax.Array
     emitted: jax.Array
     proposal_power: jax.Array
+    root: jax.Array
     kernel_nbr: jax.Array
     kernel_w: jax.Array
     inv_area: jax.Array
@@ -484,7 +509,8 @@ def _params(data: _Data, pd, ps, alpha):
 
 def _powers(data: _Data, pd, ps, alpha, static: _Static):
     return photon_powers(data.ev_vertices, data.ev_bary, data.ev_cos_i, data.ev_cos_o, data.ev_theta_h,
-                         data.ev_weight, data.light, data.parent, data.emitted, pd, ps, alpha, static.offsets)
+                         data.ev_weight, data.light, data.parent, data.bounce, data.emitted, pd, ps, alpha,
+                         static.offsets, static.depth)
 
 
 def _parts_from_powers(data: _Data, power, alpha, static: _Static):
@@ -502,15 +528,29 @@ def _indirect(data: _Data, pd, ps, alpha, static: _Static):
 
 
 @partial(jax.jit, static_argnames="static")
-def _powers_jit(data: _Data, pd, ps, alpha, static: _Static):
-    return _powers(data, *_params(data, pd, ps, alpha), static).T
+def _powers_jit(data: _Data, real, pd, ps, alpha, static: _Static):
+    return _powers(data, *_params(data, pd, ps, alpha), static)[:, real].T
 
 
 @partial(jax.jit, static_argnames="static")
-def _parts_jit(data: _Data, power, alpha, static: _Static):
-    d, q = _parts_from_powers(data, jnp.asarray(power, data.ev_bary.dtype).T,
-                              jnp.asarray(alpha, data.ev_bary.dtype), static)
+def _parts_jit(data: _Data, real, power, alpha, static: _Static):
+    padded = jnp.zeros_like(data.proposal_power).at[:, real].set(jnp.asarray(power, data.ev_bary.dtype).T)
+    d, q = _parts_from_powers(data, padded, jnp.asarray(alpha, data.ev_bary.dtype), static)
     return jnp.where(data.facing[..., None], d, 0.0), jnp.where(data.facing[..., None], q, 0.0)
+
+
+@partial(jax.jit, static_argnames=("static", "batches"))
+def _indirect_batches(data: _Data, pd, ps, alpha, static: _Static, batches: int):
+    pd, ps, alpha = _params(data, pd, ps, alpha)
+    power = _powers(data, pd, ps, alpha, static)
+    group = data.root % batches
+
+    def one(b):
+        d, q = _parts_from_powers(data, jnp.where((group == b)[None, :], power * batches, 0.0), alpha, static)
+        rad = pd[:, None, :] / jnp.pi * d + ps[:, None, None] * q
+        return jnp.where(data.facing[..., None], rad, 0.0)
+
+    return jax.lax.map(one, jnp.arange(batches))
 
 
 @partial(jax.jit, static_argnames="static")
@@ -524,6 +564,87 @@ def _ess(data: _Data, pd, ps, alpha, static: _Static):
     cnt = jax.ops.segment_sum(ok.astype(r.dtype), data.light, static.n_lights)
     good = (s2 > 0) & (cnt > 0)
     return jnp.where(good, s1 * s1 / jnp.where(good, s2 * cnt, 1.0), 0.0)
+
+
+#: Smallest padded block of photons (levels of very different small sizes share shapes).
+_MIN_BLOCK = 1024
+
+
+def _bucket(n: int) -> int:
+    """`n` rounded up to `k 2^j` with `16 <= k < 32` (at most 6.25 % more), so that
+    replays of similar size share array shapes and compiled code."""
+    if n <= 32:
+        return n
+    step = 1 << (int(n).bit_length() - 5)
+    return -(-n // step) * step
+
+
+def _padded_paths(paths: PhotonPaths):
+    """Photon arrays with bounce levels `1.._UNROLLED_LEVELS` (empty or not) and the
+    deeper tail each padded to `_bucket` sizes (at least `_MIN_BLOCK`) by dummy
+    photons (zero weight, bounce 0), so that replays of similar size compile once.
+
+    **Returns:** `(arrays, offsets, new_index)`: dict of padded arrays (those of
+    `PhotonPaths` plus `root`), the static level bounds, and `(P,)` each photon's
+    new row."""
+    off = paths.level_offsets
+    depth = len(off) - 1
+    head = _UNROLLED_LEVELS
+    ends = [off[min(b, depth)] for b in range(head + 1)] + [off[-1]]
+    blocks = list(zip(ends[:-1], ends[1:]))  # head levels (possibly empty), then the tail
+    sizes = [max(_MIN_BLOCK, _bucket(e - s)) for s, e in blocks]
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    total = int(starts[-1])
+    new_index = np.concatenate([starts[i] + np.arange(e - s) for i, (s, e) in enumerate(blocks)] or
+                               [np.zeros(0, np.int64)]).astype(np.int64)
+    root = _roots(paths)
+    fields = dict(ev_vertices=paths.ev_vertices, ev_bary=paths.ev_bary, ev_cos_i=paths.ev_cos_i,
+                  ev_cos_o=paths.ev_cos_o, ev_theta_h=paths.ev_theta_h, ev_weight=paths.ev_weight,
+                  light=paths.light, bounce=paths.bounce, power=paths.power)
+    out = {}
+    for key, x in fields.items():
+        y = np.zeros((total,) + x.shape[1:], x.dtype)
+        y[new_index] = x
+        out[key] = y
+    # Dummy events sit on vertex 0 of face 0 (a real vertex: finite gradients) with no weight.
+    pad = np.ones(total, bool)
+    pad[new_index] = False
+    out["ev_bary"][pad, 0] = 1.0
+    parent = np.zeros(total, np.int64)
+    parent[new_index] = np.where(paths.parent >= 0, new_index[np.maximum(paths.parent, 0)], 0)
+    out["parent"] = parent
+    out["root"] = np.zeros(total, np.int64)
+    out["root"][new_index] = new_index[root]
+    offsets = tuple(int(x) for x in starts[: head + 1])
+    return out, offsets, new_index
+
+
+def _padded_splat(splat: gather.Splat, new_index, n_rows: int) -> gather.Splat:
+    """Splat entries with photons renumbered to their padded rows and the entry
+    count padded to a `_bucket` size (zero-weight entries on the last row)."""
+    e = len(splat.row)
+    extra = _bucket(e) - e
+
+    def pad(x, value):
+        return np.concatenate([x, np.full(extra, value, x.dtype)])
+
+    return gather.Splat(
+        photon=pad(new_index[splat.photon].astype(np.int32), 0),
+        vertex=pad(splat.vertex, 0),
+        row=pad(splat.row, n_rows - 1),
+        w_diffuse=pad(splat.w_diffuse, 0.0),
+        w_lobe=pad(splat.w_lobe, 0.0),
+        tan2=pad(splat.tan2, 1e30),
+    )
+
+
+def _roots(paths: PhotonPaths) -> np.ndarray:
+    """`(P,)` row of the bounce-1 photon each stored photon's path starts with."""
+    root = np.arange(len(paths.light))
+    off = paths.level_offsets
+    for s, e in zip(off[1:-1], off[2:]):
+        root[s:e] = root[paths.parent[s:e]]
+    return root
 
 
 def _broadcast_positions(x, n, m, name):
@@ -548,6 +669,7 @@ class PhotonReplay:
     paths: PhotonPaths
     data: _Data
     static: _Static
+    real: jax.Array  # (P,) padded row of each stored photon
     settings: dict = field(repr=False)
     seconds: dict = field(default_factory=dict)
 
@@ -596,28 +718,28 @@ class PhotonReplay:
         kernel = gather.mesh_kernel(v, f, max_rings)
         splat = gather.splat_geometry(v, f, nrm, cam, paths.face, paths.bary, paths.direction, paths.light)
         level = gather.choose_levels(kernel, splat, paths.power.mean(axis=1), m, target_photons)
-        n_levels = int(level.max()) + 1 if level.size else 1
         inv_area = 1.0 / np.maximum(np.take_along_axis(kernel.area.T, level, axis=1), 1e-300)
         to_cam = cam - v[:, None, :]
         facing = np.einsum("nmi,ni->nm", to_cam, nrm) > 0
         t2 = time.perf_counter()
+        pp, offsets, new_index = _padded_paths(paths)
+        sp_ = _padded_splat(splat, new_index, len(v) * m)
         a = partial(jnp.asarray, dtype=dtype)
         i32 = partial(jnp.asarray, dtype=jnp.int32)
         data = _Data(
-            ev_vertices=i32(paths.ev_vertices.T), ev_bary=a(paths.ev_bary.T), ev_cos_i=a(paths.ev_cos_i),
-            ev_cos_o=a(paths.ev_cos_o), ev_theta_h=a(paths.ev_theta_h), ev_weight=a(paths.ev_weight),
-            light=i32(paths.light), parent=i32(paths.parent), emitted=a(paths.emitted),
-            proposal_power=a(paths.power.T), kernel_nbr=i32(kernel.neighbours), kernel_w=a(kernel.weights),
-            inv_area=a(inv_area), level=i32(level),
-            splat=gather.Splat(i32(splat.photon), i32(splat.vertex), i32(splat.row), a(splat.w_diffuse),
-                               a(splat.w_lobe), a(splat.tan2)),
+            ev_vertices=i32(pp["ev_vertices"].T), ev_bary=a(pp["ev_bary"].T), ev_cos_i=a(pp["ev_cos_i"]),
+            ev_cos_o=a(pp["ev_cos_o"]), ev_theta_h=a(pp["ev_theta_h"]), ev_weight=a(pp["ev_weight"]),
+            light=i32(pp["light"]), parent=i32(pp["parent"]), bounce=i32(pp["bounce"]), emitted=a(paths.emitted),
+            proposal_power=a(pp["power"].T), root=i32(pp["root"]), kernel_nbr=i32(kernel.neighbours),
+            kernel_w=a(kernel.weights), inv_area=a(inv_area), level=i32(level),
+            splat=gather.Splat(*(i32(x) if x.dtype.kind in "iu" else a(x) for x in sp_)),
             facing=jnp.asarray(facing),
         )
-        static = _Static(paths.level_offsets, len(v), m, n_levels)
+        static = _Static(offsets, len(v), m, int(max_depth), int(max_rings) + 1)
         settings.update(caster=caster, vertices=v, faces=f, normals=nrm, light_pos=light_pos,
                         intensity=intensity, cam_pos=cam)
         seconds = {"trace": t1 - t0, "gather_setup": t2 - t1}
-        return cls(paths, data, static, settings, seconds)
+        return cls(paths, data, static, jnp.asarray(new_index, jnp.int32), settings, seconds)
 
     @property
     def n_photons(self) -> int:
@@ -633,14 +755,23 @@ class PhotonReplay:
 
     def powers(self, pd, ps, alpha):
         """`(P, 3)` photon powers [W] under the given reflectance (jit-compiled)."""
-        return _powers_jit(self.data, pd, ps, alpha, self.static)
+        return _powers_jit(self.data, self.real, pd, ps, alpha, self.static)
 
     def parts(self, power, alpha):
         """`(D, Q)` `(N, M, 3)` each from photon powers `(P, 3)`: the indirect
         radiance is `pd / pi * D + ps * Q`; `D` is the incident flux density
         [W/m^2] of light that reflected at least once, `Q` its Ward-lobe
         weighted sum [W/(sr m^2)] with roughness `alpha` `(N,)` (jit-compiled)."""
-        return _parts_jit(self.data, power, alpha, self.static)
+        return _parts_jit(self.data, self.real, power, alpha, self.static)
+
+    def indirect_batches(self, pd, ps, alpha, batches: int = 8):
+        """`(B, N, M, 3)` independent estimates of `indirect` from `B` disjoint
+        groups of emitted photons (whole paths), each scaled to the full count:
+        their mean is `indirect`, and their standard deviation over `sqrt(B)` is
+        its Monte Carlo standard error (given the smoothing levels)."""
+        if batches < 2:
+            raise ValueError(f"batches must be >= 2, got {batches}")
+        return _indirect_batches(self.data, pd, ps, alpha, self.static, int(batches))
 
     def ess(self, pd, ps, alpha):
         """`(M,)` effective sample size of each light's photons under the given
