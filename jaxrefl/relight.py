@@ -21,8 +21,6 @@ is missing, a `ValueError` says so.
 
 from __future__ import annotations
 
-import importlib
-import inspect
 
 import jax.numpy as jnp
 import numpy as np
@@ -55,26 +53,22 @@ def indirect(model_gi, vertices, faces, normals, est: Estimate, light_pos, inten
         return np.zeros((n, 3))
     if model_gi not in GI_MODELS:
         raise ValueError(f"model-gi: must be one of {', '.join(GI_MODELS)}, got {model_gi!r}")
-    try:
-        module = importlib.import_module(f"jaxrefl.{model_gi}")
-    except Exception as exc:  # missing module or a module that fails to import: not usable here
-        raise ValueError(f"model-gi: {model_gi} is not available in this version "
-                         f"(jaxrefl.{model_gi} does not import: {exc})") from None
-    fn = getattr(module, "relight_indirect", None)
-    if fn is None:
-        raise ValueError(f"model-gi: {model_gi} is not available in this version "
-                         f"(jaxrefl.{model_gi} has no relight_indirect)")
-    args = (vertices, faces, normals, est, light_pos, intensity, cam_pos)
-    try:  # check the contract before calling, so a TypeError inside the solver is not masked
-        inspect.signature(fn).bind(*args)
-    except TypeError:
-        raise ValueError(f"model-gi: {model_gi} is not available in this version (jaxrefl.{model_gi}."
-                         f"relight_indirect{inspect.signature(fn)} does not take (vertices, faces, "
-                         "normals, est, light_pos, intensity, cam_pos))") from None
-    out = np.asarray(fn(*args), dtype=np.float64)
+    if model_gi == "radiosity":  # diffuse interreflection only (Method II's model)
+        from .radiosity import relight_indirect as radiosity_indirect
+
+        out = radiosity_indirect(vertices, faces, normals, est.pd, light_pos, intensity)
+    else:  # photon mapping traces the Ward model (Method III's model)
+        if est.model != "ward":
+            raise ValueError(f"model-gi: photon relighting needs a Ward result, this one is {est.model!r} "
+                             "(estimate with --model ward, or use --model-gi radiosity)")
+        from .photon import relight_indirect as photon_indirect
+
+        out = photon_indirect(vertices, faces, normals, est.pd, est.ps, est.roughness, light_pos, intensity,
+                              cam_pos)
+    out = np.asarray(out, dtype=np.float64)
     if out.shape != (n, 3) or not np.all(np.isfinite(out)):
         bad = int(np.count_nonzero(~np.isfinite(out)))
-        raise ValueError(f"model-gi: jaxrefl.{model_gi}.relight_indirect returned {out.shape} "
+        raise ValueError(f"model-gi: {model_gi} relighting returned {out.shape} "
                          f"with {bad} non-finite value(s), want ({n}, 3)")
     return out
 
