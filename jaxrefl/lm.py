@@ -18,7 +18,7 @@ as one fused loop over the rows:
 - `bounded_arrow_solve`: the exact minimiser of `Q` under the bounds;
 - `projected_step_terms`: gradient and Gauss-Newton curvature of the projected
   cost in `rho` (the Schur complement over the free amplitudes);
-- `gauss_newton_1d`: a safeguarded fixed-step Newton iteration in `rho`;
+- `gauss_newton_1d`: a safeguarded Newton iteration in `rho`;
 - `spd_inverse_diagonal`: diagonal of the inverse of a small SPD matrix (for
   the Gauss-Newton covariance `s^2 (J^T J)^-1`).
 """
@@ -116,13 +116,13 @@ def projected_step_terms(s11_inv, s12, s22, u, v, free, s1d, s2d, sdd, b2d):
     return g, jnp.maximum(h, 0.0)
 
 
-def gauss_newton_1d(evaluate, rho0, steps, lo, hi, radius=0.5):
-    """Safeguarded Newton iteration on a per-row 1-D cost, a fixed number of steps.
+def gauss_newton_1d(evaluate, rho0, steps, lo, hi, radius=0.5, tol=1e-9):
+    """Safeguarded Newton iteration on a per-row 1-D cost, at most `steps` steps.
 
     **Arguments:** `evaluate(rho) -> (cost, g, h)` (each `(n,)`: the cost, half
     its derivative and half its Gauss-Newton second derivative); `rho0` `(n,)`
     start; `steps` static count; `lo <= rho <= hi` bounds; `radius` the first
-    trust radius.
+    trust radius; `tol`: the iteration ends early once no row would move by more.
 
     **Returns:** `(rho, cost)`, each `(n,)`.
 
@@ -137,22 +137,29 @@ def gauss_newton_1d(evaluate, rho0, steps, lo, hi, radius=0.5):
     rho0 = jnp.clip(rho0, lo, hi)
     cost0, g0, h0 = evaluate(rho0)
 
-    def body(_, state):
-        rho, cost, g, curv, trust = state
+    def trial_of(state):
+        _, rho, _, g, curv, trust = state
         newton = -g / jnp.where(curv > 0, curv, 1.0)
         step = jnp.where(curv > 0, jnp.clip(newton, -trust, trust), -jnp.sign(g) * trust)
-        trial = jnp.clip(rho + jnp.where(jnp.isfinite(step), step, 0.0), lo, hi)
+        return jnp.clip(rho + jnp.where(jnp.isfinite(step), step, 0.0), lo, hi)
+
+    def unfinished(state):
+        return (state[0] < steps) & jnp.any(jnp.abs(trial_of(state) - state[1]) > tol)
+
+    def body(state):
+        k, rho, cost, g, curv, trust = state
+        trial = trial_of(state)
         cost_t, g_t, _ = evaluate(trial)
         moved = trial - rho
         ok = jnp.isfinite(cost_t) & (cost_t < cost) & (moved != 0)
         secant = (g_t - g) / jnp.where(ok, moved, 1.0)
         at_edge = jnp.abs(moved) >= 0.99 * trust
         keep = lambda new, old: jnp.where(ok, new, old)  # noqa: E731
-        trust = jnp.where(ok, jnp.where(at_edge, 2.0 * trust, trust), 0.25 * jnp.abs(moved))
-        return keep(trial, rho), keep(cost_t, cost), keep(g_t, g), keep(secant, curv), trust
+        trust = jnp.where(ok, jnp.where(at_edge, 2.0 * trust, trust), 0.1 * jnp.abs(moved))
+        return k + 1, keep(trial, rho), keep(cost_t, cost), keep(g_t, g), keep(secant, curv), trust
 
-    state = (rho0, cost0, g0, h0, jnp.full_like(rho0, radius))
-    rho, cost, *_ = jax.lax.fori_loop(0, steps, body, state)
+    state = (0, rho0, cost0, g0, h0, jnp.full_like(rho0, radius))
+    _, rho, cost, *_ = jax.lax.while_loop(unfinished, body, state)
     return rho, cost
 
 
