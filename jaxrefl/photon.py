@@ -55,7 +55,9 @@ class PhotonPaths(NamedTuple):
     """Stored photons (host NumPy), sorted by bounce: bounce `b` photons are rows
     `level_offsets[b - 1]:level_offsets[b]`. `P` photons, `M` lights.
 
-    - `light` `(P,)` int: the light that emitted it; `bounce` `(P,)` int >= 1;
+    - `light` `(P,)` int: the light that emitted it; `path` `(P,)` int: which
+      emitted photon it descends from (`light * n + k` for the `k`-th of `n`
+      emitted; shared by all photons of one path); `bounce` `(P,)` int >= 1;
       `parent` `(P,)` int: row of the photon that bounced one time less on the
       same path (-1 for bounce 1).
     - Scattering event that sent it on (at the previous surface point):
@@ -71,6 +73,7 @@ class PhotonPaths(NamedTuple):
     """
 
     light: np.ndarray
+    path: np.ndarray
     bounce: np.ndarray
     parent: np.ndarray
     level_offsets: tuple
@@ -328,6 +331,7 @@ def trace_photons(caster: RayCaster, normals, light_pos, intensity, proposal, n_
         front = facing(face, bary_t, wi_t)
         parts.append(dict(face=face[front], bary=bary_t[:, front], pos=hits.points[h][front].T.astype(dt),
                           wi=wi_t[:, front], light=np.full(int(front.sum()), k, np.int32),
+                          path=k * int(n_photons) + h[front],
                           power=np.full((3, int(front.sum())), emitted[k], dt)))
     live = {key: np.concatenate([p[key] for p in parts], axis=-1) for key in parts[0]}
     live["parent"] = np.full(len(live["face"]), -1, dtype=np.int64)
@@ -350,7 +354,8 @@ def trace_photons(caster: RayCaster, normals, light_pos, intensity, proposal, n_
         arrive = landed[front]
         j = idx[arrive]
         level = dict(
-            light=live["light"][j], parent=live["parent"][j], ev_vertices=faces_t[:, live["face"][j]].T,
+            light=live["light"][j], path=live["path"][j], parent=live["parent"][j],
+            ev_vertices=faces_t[:, live["face"][j]].T,
             ev_bary=live["bary"][:, j].T, ev_cos_i=ci[j], ev_cos_o=co[j], ev_theta_h=th[j],
             ev_weight=weight[j], face=hits.face[arrive], bary=hits.barycentric[arrive],
             position=hits.points[arrive], direction=-wo[:, j].T, power=power[:, j].T,
@@ -358,7 +363,8 @@ def trace_photons(caster: RayCaster, normals, light_pos, intensity, proposal, n_
         levels.append(level)
         count = len(j)
         live = dict(face=level["face"], bary=nb[:, front], pos=level["position"].T.astype(dt),
-                    wi=-wo[:, j], power=power[:, j], light=level["light"], parent=stored + np.arange(count))
+                    wi=-wo[:, j], power=power[:, j], light=level["light"], path=level["path"],
+                    parent=stored + np.arange(count))
         stored += count
     return _sort_levels(_merge(levels, emitted, np.full(m, int(n_photons))), m)
 
@@ -386,10 +392,10 @@ def _sort_levels(paths: PhotonPaths, n_lights: int) -> PhotonPaths:
 def _merge(levels, emitted, n_emitted) -> PhotonPaths:
     """Concatenate bounce levels (dicts of arrays) into one `PhotonPaths`."""
     offsets = tuple(int(x) for x in np.cumsum([0] + [len(lv["face"]) for lv in levels]))
-    shapes = {"light": (), "parent": (), "ev_vertices": (3,), "ev_bary": (3,), "ev_cos_i": (), "ev_cos_o": (),
+    shapes = {"light": (), "path": (), "parent": (), "ev_vertices": (3,), "ev_bary": (3,), "ev_cos_i": (), "ev_cos_o": (),
               "ev_theta_h": (), "ev_weight": (), "face": (), "bary": (3,), "position": (3,), "direction": (3,),
               "power": (3,)}
-    ints = ("light", "parent", "ev_vertices", "face")
+    ints = ("light", "path", "parent", "ev_vertices", "face")
     cat = {}
     for key, shape in shapes.items():
         dtype = np.int64 if key in ints else np.float64
@@ -493,7 +499,7 @@ class _Data(NamedTuple):
     bounce: jax.Array
     emitted: jax.Array
     proposal_power: jax.Array
-    root: jax.Array
+    path: jax.Array
     kernel_nbr: jax.Array
     kernel_w: jax.Array
     inv_area: jax.Array
@@ -543,7 +549,7 @@ def _parts_jit(data: _Data, real, power, alpha, static: _Static):
 def _indirect_batches(data: _Data, pd, ps, alpha, static: _Static, batches: int):
     pd, ps, alpha = _params(data, pd, ps, alpha)
     power = _powers(data, pd, ps, alpha, static)
-    group = data.root % batches
+    group = data.path % batches  # a split of the emitted photons fixed before tracing
 
     def one(b):
         d, q = _parts_from_powers(data, jnp.where((group == b)[None, :], power * batches, 0.0), alpha, static)
@@ -585,7 +591,7 @@ def _padded_paths(paths: PhotonPaths):
     photons (zero weight, bounce 0), so that replays of similar size compile once.
 
     **Returns:** `(arrays, offsets, new_index)`: dict of padded arrays (those of
-    `PhotonPaths` plus `root`), the static level bounds, and `(P,)` each photon's
+    `PhotonPaths`), the static level bounds, and `(P,)` each photon's
     new row."""
     off = paths.level_offsets
     depth = len(off) - 1
@@ -597,10 +603,9 @@ def _padded_paths(paths: PhotonPaths):
     total = int(starts[-1])
     new_index = np.concatenate([starts[i] + np.arange(e - s) for i, (s, e) in enumerate(blocks)] or
                                [np.zeros(0, np.int64)]).astype(np.int64)
-    root = _roots(paths)
     fields = dict(ev_vertices=paths.ev_vertices, ev_bary=paths.ev_bary, ev_cos_i=paths.ev_cos_i,
                   ev_cos_o=paths.ev_cos_o, ev_theta_h=paths.ev_theta_h, ev_weight=paths.ev_weight,
-                  light=paths.light, bounce=paths.bounce, power=paths.power)
+                  light=paths.light, path=paths.path, bounce=paths.bounce, power=paths.power)
     out = {}
     for key, x in fields.items():
         y = np.zeros((total,) + x.shape[1:], x.dtype)
@@ -613,8 +618,6 @@ def _padded_paths(paths: PhotonPaths):
     parent = np.zeros(total, np.int64)
     parent[new_index] = np.where(paths.parent >= 0, new_index[np.maximum(paths.parent, 0)], 0)
     out["parent"] = parent
-    out["root"] = np.zeros(total, np.int64)
-    out["root"][new_index] = new_index[root]
     offsets = tuple(int(x) for x in starts[: head + 1])
     return out, offsets, new_index
 
@@ -636,15 +639,6 @@ def _padded_splat(splat: gather.Splat, new_index, n_rows: int) -> gather.Splat:
         w_lobe=pad(splat.w_lobe, 0.0),
         tan2=pad(splat.tan2, 1e30),
     )
-
-
-def _roots(paths: PhotonPaths) -> np.ndarray:
-    """`(P,)` row of the bounce-1 photon each stored photon's path starts with."""
-    root = np.arange(len(paths.light))
-    off = paths.level_offsets
-    for s, e in zip(off[1:-1], off[2:]):
-        root[s:e] = root[paths.parent[s:e]]
-    return root
 
 
 def _broadcast_positions(x, n, m, name):
@@ -730,7 +724,7 @@ class PhotonReplay:
             ev_vertices=i32(pp["ev_vertices"].T), ev_bary=a(pp["ev_bary"].T), ev_cos_i=a(pp["ev_cos_i"]),
             ev_cos_o=a(pp["ev_cos_o"]), ev_theta_h=a(pp["ev_theta_h"]), ev_weight=a(pp["ev_weight"]),
             light=i32(pp["light"]), parent=i32(pp["parent"]), bounce=i32(pp["bounce"]), emitted=a(paths.emitted),
-            proposal_power=a(pp["power"].T), root=i32(pp["root"]), kernel_nbr=i32(kernel.neighbours),
+            proposal_power=a(pp["power"].T), path=i32(pp["path"]), kernel_nbr=i32(kernel.neighbours),
             kernel_w=a(kernel.weights), inv_area=a(inv_area), level=i32(level),
             splat=gather.Splat(*(i32(x) if x.dtype.kind in "iu" else a(x) for x in sp_)),
             facing=jnp.asarray(facing),

@@ -57,11 +57,7 @@ def test_furnace(rho):
     mean = np.sum(area * out[:, 0]) / area.sum()
     # Its Monte Carlo error: the spread of the total power each emitted photon's path stores.
     paths = rep.paths
-    root = np.arange(rep.n_photons)
-    for s, e in zip(paths.level_offsets[1:-1], paths.level_offsets[2:]):
-        root[s:e] = root[paths.parent[s:e]]
-    per_path = np.zeros(int(paths.n_emitted[0]))
-    per_path[: paths.level_offsets[1]] = np.bincount(root, paths.power[:, 0], minlength=paths.level_offsets[1])
+    per_path = np.bincount(paths.path, paths.power[:, 0], minlength=int(paths.n_emitted[0]))
     rel_se = per_path.std() / np.sqrt(len(per_path)) / per_path.mean()
     assert abs(mean / exact_poly - 1) < 4 * rel_se + 1e-3, (mean / exact_poly - 1, rel_se)
     sphere_value = rho / np.pi * 2.0 * rho / (1 - rho)
@@ -123,17 +119,13 @@ def test_replay_agrees_with_a_fresh_trace(plates):
     target = (np.tile([0.7, 0.5, 0.3], (n, 1)), np.full(n, 0.25), np.full(n, 0.12))
     args = (caster, obj.vertices, obj.faces, obj.normals, LIGHT[None], 1.0, CAM)
     replays = [PhotonReplay.build(*args, prop, n_photons=500_000, seed=0)]
-    fresh = [PhotonReplay.build(*args, target, n_photons=500_000, seed=s) for s in (10, 11)]
+    fresh = [PhotonReplay.build(*args, target, n_photons=500_000, seed=10)]
     region = _region(obj)
-    a, b, c = (_batches([r], target, region, 16) for r in replays + fresh)
+    a, b = _batches(replays, target, region, 16), _batches(fresh, target, region, 16)
     rel, rel_se, chi2 = _agreement(a, b)
     assert abs(rel) < 4 * rel_se, (rel, rel_se)
-    assert rel_se < 0.02
-    # Per vertex, the replay differs from a fresh trace no more than two fresh traces
-    # differ from each other (heavy-tailed glossy photon weights make the batch errors
-    # ~25 % too small, so chi^2 is ~1.7 even then, not 1).
-    _, _, chi2_fresh = _agreement(c, b)
-    assert chi2 < 1.25 * chi2_fresh and chi2 < 3, (chi2, chi2_fresh)
+    assert rel_se < 0.03
+    assert chi2 < 1.4, chi2  # per vertex within Monte Carlo error (1 expected)
     # The colour follows the target, and the proposal has gone stale, which ess tells.
     red, blue = (np.asarray(fresh[0].indirect(*target))[region, 0, c] for c in (0, 2))
     assert np.all(red > blue)
@@ -145,21 +137,25 @@ def test_replay_agrees_with_a_fresh_trace(plates):
 
 def test_batches_state_the_monte_carlo_error(plates):
     """The batches average to `indirect`, and the error they state is the spread
-    between independent runs."""
-    obj, caster, params = plates
+    between independent runs. (A dark surface: few photons survive, so how many
+    land near each vertex varies a lot; batches that split photons by where they
+    landed, not by which emitted photon they came from, stated a third of it.)"""
+    obj, caster, _ = plates
+    n = len(obj.vertices)
+    params = (np.full((n, 3), 0.2), np.full(n, 0.05), np.full(n, 0.3))
     region = _region(obj)
     args = (caster, obj.vertices, obj.faces, obj.normals, LIGHT[None], 1.0, CAM, params)
     means, stated = [], []
-    for seed in range(5):
-        rep = PhotonReplay.build(*args, n_photons=40_000, seed=seed)
+    for seed in range(6):
+        rep = PhotonReplay.build(*args, n_photons=100_000, seed=seed)
         b = np.asarray(rep.indirect_batches(*params, batches=8))
         if seed == 0:
-            np.testing.assert_allclose(b.mean(0), np.asarray(rep.indirect(*params)), rtol=1e-4, atol=1e-7)
+            np.testing.assert_allclose(b.mean(0), np.asarray(rep.indirect(*params)), rtol=1e-4, atol=1e-9)
         r = b[:, region, 0, 0].mean(1)
         means.append(r.mean())
         stated.append(r.std(ddof=1) / np.sqrt(8))
     ratio = np.std(means, ddof=1) / np.sqrt(np.mean(np.square(stated)))
-    assert 0.4 < ratio < 2.0, ratio  # 4 degrees of freedom: a factor ~2 either way is chance
+    assert 0.35 < ratio < 2.0, ratio  # 5 degrees of freedom: a factor ~2 either way is chance
 
 
 @pytest.mark.parametrize("setup", ["glossy", "diffuse"])
@@ -190,7 +186,7 @@ def test_forward_check_against_the_path_tracer(setup):
     assert rel_se < 0.01
     # Per vertex: the typical deviation is what the two estimators' noise explains.
     z = (pm - ref) / np.sqrt(ref_se**2 + pm_se**2)
-    assert np.sqrt(np.mean(z**2)) < 1.6
+    assert np.sqrt(np.mean(z**2)) < 1.35
 
 
 def test_one_photon_splat_is_the_ward_lobe():
