@@ -669,7 +669,7 @@ class PhotonReplay:
 
     @classmethod
     def build(cls, caster, vertices, faces, normals, light_pos, intensity, cam_pos, proposal,
-              n_photons: int = 1_000_000, target_photons: float = 64.0, max_rings: int = 5, seed: int = 0,
+              n_photons: int = 1_000_000, target_photons: float = 256.0, max_rings: int = 5, seed: int = 0,
               max_depth: int = 64, min_survival: float = 0.1, dtype=np.float32) -> "PhotonReplay":
         """Trace photons from every light and precompute the gathers.
 
@@ -785,7 +785,7 @@ class PhotonReplay:
 
 
 def relight_indirect(vertices, faces, normals, pd, ps, alpha, light_pos, intensity, cam_pos,
-                     n_photons: int = 1_000_000, target_photons: float = 64.0, seed: int = 0, caster=None):
+                     n_photons: int = 1_000_000, target_photons: float = 256.0, seed: int = 0, caster=None):
     """Interreflected radiance `(N, 3)` [W/(sr m^2)] of every vertex toward
     `cam_pos` (`(3,)` or `(N, 3)`) under one point light at `light_pos` `(3,)`
     of radiant intensity `intensity` [W/sr], for Ward reflectance `pd` `(N, 3)`,
