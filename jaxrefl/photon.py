@@ -392,9 +392,9 @@ def _sort_levels(paths: PhotonPaths, n_lights: int) -> PhotonPaths:
 def _merge(levels, emitted, n_emitted) -> PhotonPaths:
     """Concatenate bounce levels (dicts of arrays) into one `PhotonPaths`."""
     offsets = tuple(int(x) for x in np.cumsum([0] + [len(lv["face"]) for lv in levels]))
-    shapes = {"light": (), "path": (), "parent": (), "ev_vertices": (3,), "ev_bary": (3,), "ev_cos_i": (), "ev_cos_o": (),
-              "ev_theta_h": (), "ev_weight": (), "face": (), "bary": (3,), "position": (3,), "direction": (3,),
-              "power": (3,)}
+    shapes = {"light": (), "path": (), "parent": (), "ev_vertices": (3,), "ev_bary": (3,), "ev_cos_i": (),
+              "ev_cos_o": (), "ev_theta_h": (), "ev_weight": (), "face": (), "bary": (3,), "position": (3,),
+              "direction": (3,), "power": (3,)}
     ints = ("light", "path", "parent", "ev_vertices", "face")
     cat = {}
     for key, shape in shapes.items():
@@ -709,13 +709,33 @@ class PhotonReplay:
         paths = trace_photons(caster, nrm, light_pos, intensity, proposal, n_photons, seed=seed,
                               max_depth=max_depth, min_survival=min_survival)
         t1 = time.perf_counter()
+        replay = cls.from_paths(paths, v, f, nrm, cam, target_photons=target_photons, max_rings=max_rings,
+                                max_depth=max_depth, dtype=dtype)
+        replay.settings.update(settings, caster=caster, light_pos=light_pos, intensity=intensity)
+        replay.seconds["trace"] = t1 - t0
+        return replay
+
+    @classmethod
+    def from_paths(cls, paths: PhotonPaths, vertices, faces, normals, cam_pos, target_photons: float = 256.0,
+                   max_rings: int = 5, max_depth: int = 64, dtype=np.float32) -> "PhotonReplay":
+        """Gathers for already traced `paths` (arguments as `build`; `cam_pos`
+        `(N, M, 3)` or broadcastable): other gather settings without re-tracing."""
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces, dtype=np.int64)
+        nrm = _normalize(np.asarray(normals, dtype=np.float64))
+        m = len(paths.emitted)
+        if target_photons <= 0 or max_rings < 0:
+            raise ValueError("target_photons must be > 0 and max_rings >= 0")
+        if len(paths.level_offsets) - 1 > max_depth:
+            raise ValueError(f"max_depth: the paths have {len(paths.level_offsets) - 1} bounce levels")
+        cam = _broadcast_positions(cam_pos, len(v), m, "cam_pos")
+        t1 = time.perf_counter()
         kernel = gather.mesh_kernel(v, f, max_rings)
         splat = gather.splat_geometry(v, f, nrm, cam, paths.face, paths.bary, paths.direction, paths.light)
         level = gather.choose_levels(kernel, splat, paths.power.mean(axis=1), m, target_photons)
         inv_area = 1.0 / np.maximum(np.take_along_axis(kernel.area.T, level, axis=1), 1e-300)
         to_cam = cam - v[:, None, :]
         facing = np.einsum("nmi,ni->nm", to_cam, nrm) > 0
-        t2 = time.perf_counter()
         pp, offsets, new_index = _padded_paths(paths)
         sp_ = _padded_splat(splat, new_index, len(v) * m)
         a = partial(jnp.asarray, dtype=dtype)
@@ -730,9 +750,9 @@ class PhotonReplay:
             facing=jnp.asarray(facing),
         )
         static = _Static(offsets, len(v), m, int(max_depth), int(max_rings) + 1)
-        settings.update(caster=caster, vertices=v, faces=f, normals=nrm, light_pos=light_pos,
-                        intensity=intensity, cam_pos=cam)
-        seconds = {"trace": t1 - t0, "gather_setup": t2 - t1}
+        settings = dict(target_photons=target_photons, max_rings=max_rings, max_depth=max_depth, dtype=dtype,
+                        vertices=v, faces=f, normals=nrm, cam_pos=cam)
+        seconds = {"gather_setup": time.perf_counter() - t1}
         return cls(paths, data, static, jnp.asarray(new_index, jnp.int32), settings, seconds)
 
     @property
@@ -776,6 +796,8 @@ class PhotonReplay:
     def retrace(self, pd, ps, alpha, seed: int | None = None) -> "PhotonReplay":
         """A new replay of the same scene and settings with proposal `(pd, ps, alpha)`."""
         s = dict(self.settings)
+        if "caster" not in s:
+            raise ValueError("retrace: this replay was made from paths (from_paths); build one with build()")
         caster = s.pop("caster")
         args = [s.pop(k) for k in ("vertices", "faces", "normals", "light_pos", "intensity", "cam_pos")]
         if seed is not None:
