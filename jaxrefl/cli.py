@@ -106,12 +106,17 @@ def _add_table1(sub):
 def _add_estimate(sub):
     p = sub.add_parser("estimate", help="estimate per-point reflectance from a scan bundle")
     p.add_argument("scan", help="scan bundle (.npz) with radiance")
+    p.add_argument("--out", required=True, help="result file to write (.npz)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    _add_estimate_options(p)
+
+
+def _add_estimate_options(p):
+    """The estimator options, shared by `estimate` and `batch`."""
     p.add_argument("--method", choices=["local", "radiosity"], default="local",
                    help="local: Method I, inverse local rendering (§3); radiosity: Method II, inverse "
                         "radiosity, diffuse interreflections removed (§4)")
     p.add_argument("--model", choices=["torrance-sparrow", "ward"], default="torrance-sparrow")
-    p.add_argument("--out", required=True, help="result file to write (.npz)")
-    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--paper", action="store_true",
                    help="the paper's estimator: Eq. 5 single best diffuse sample, Eq. 7 from two samples")
     p.add_argument("--window", type=int, default=5, help="interpolation window W (a (W-1)/2-ring)")
@@ -263,7 +268,10 @@ def cmd_select_lights(args) -> int:
     return 0
 
 
-def cmd_estimate(args) -> int:
+def estimate_to_file(scan_path, out, args) -> dict:
+    """Load the scan bundle `scan_path`, run the estimator that `args` (the `estimate`
+    options) choose, write the result file `out` atomically; the JSON summary.
+    `estimate` and `batch` both go through here."""
     import time
 
     from .io import load_scan
@@ -275,7 +283,7 @@ def cmd_estimate(args) -> int:
     if args.rays < 1 or args.outer < 1 or not args.light_bin >= 0:
         raise ValueError("rays, outer: must be >= 1; light-bin: must be >= 0")
     t0 = time.perf_counter()
-    scan = load_scan(args.scan)
+    scan = load_scan(scan_path)
     load_seconds = time.perf_counter() - t0
     if args.method == "radiosity":
         from .radiosity import RadiosityOptions, estimate_radiosity
@@ -285,10 +293,10 @@ def cmd_estimate(args) -> int:
     else:
         est = estimate_local(scan, options)
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
-    save_result(args.out, est)
+    save_result(out, est)
     observed = max(int(est.pd_measured.sum()), 1)
     summary = {
-        "method": args.method, "model": args.model, "out": args.out,
+        "method": args.method, "model": args.model, "out": str(out),
         "seconds": est.meta["seconds"],
         "points": int(len(est.status)),
         "coverage": float(np.sum(est.status == 0) / observed),
@@ -299,6 +307,11 @@ def cmd_estimate(args) -> int:
                     if k in est.meta})
     if scan.true_pd is not None:
         summary["errors"] = truth_errors(est, scan)
+    return summary
+
+
+def cmd_estimate(args) -> int:
+    summary = estimate_to_file(args.scan, args.out, args)
     if args.json:
         print(json.dumps(summary))
     else:
