@@ -276,7 +276,7 @@ def estimate_to_file(scan_path, out, args) -> dict:
 
     from .io import load_scan
     from .local import LocalOptions, estimate_local
-    from .result import save_result, truth_errors
+    from .result import save_result
 
     options = LocalOptions(model=args.model, paper=args.paper, steps=args.steps, window=args.window,
                            min_snr=args.min_snr, solver=args.solver, pool=args.pool)
@@ -294,9 +294,15 @@ def estimate_to_file(scan_path, out, args) -> dict:
         est = estimate_local(scan, options)
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
     save_result(out, est)
+    return {"method": args.method, "model": args.model, "out": str(out), **estimate_summary(est, scan)}
+
+
+def estimate_summary(est, scan) -> dict:
+    """Seconds per stage, coverage, status counts and (with ground truth) errors of `est`."""
+    from .result import truth_errors
+
     observed = max(int(est.pd_measured.sum()), 1)
     summary = {
-        "method": args.method, "model": args.model, "out": str(out),
         "seconds": est.meta["seconds"],
         "points": int(len(est.status)),
         "coverage": float(np.sum(est.status == 0) / observed),
