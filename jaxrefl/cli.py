@@ -132,6 +132,17 @@ def _add_estimate_options(p):
     g.add_argument("--outer", type=int, default=3, help="alternations of pd and the specular part")
 
 
+def _add_batch(sub):
+    p = sub.add_parser("batch", help="estimate many scan bundles, resumable, here or on a Dask cluster")
+    p.add_argument("source", help="folder of scan bundles (*.npz) or a text file listing bundle paths, one per line")
+    p.add_argument("--out", required=True,
+                   help="output folder: NAME_result.npz and NAME_result.json per scan, summary.csv, summary.md")
+    p.add_argument("--scheduler", help="Dask scheduler address (e.g. tcp://host:8786): run the scans on its workers")
+    p.add_argument("--retries", type=int, default=2,
+                   help="cluster: re-runs of a scan whose estimate raised (bad input is never re-run)")
+    _add_estimate_options(p)
+
+
 def _add_capture(sub):
     p = sub.add_parser("capture", help="one image per planned light through a serial light rig (resumable)")
     p.add_argument("plan", help="plan JSON: {\"lights\": [...]}, a list, or select-lights --json output")
@@ -324,6 +335,33 @@ def cmd_estimate(args) -> int:
         print(f"wrote {args.out}: {summary['coverage']:.1%} of observed points measured "
               f"({summary['status_counts']})")
     return 0
+
+
+def cmd_batch(args) -> int:
+    from .batch import run_batch, summary_table
+
+    if args.retries < 0:
+        raise ValueError("retries: must be >= 0")
+    client = None
+    if args.scheduler:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ValueError("scheduler: needs Dask (pip install 'jaxrefl[batch]')") from None
+        try:
+            client = Client(args.scheduler)
+        except OSError as exc:
+            raise ValueError(f"scheduler: cannot reach {args.scheduler} ({exc})") from None
+    try:
+        records = run_batch(args.source, args.out, args, client=client, retries=args.retries, progress=_progress())
+    finally:
+        if client is not None:
+            client.close()
+    print(summary_table(records)[1], end="")
+    failed = [r for r in records if r["status"] == "failed"]
+    for r in failed:
+        print(f"jaxrefl batch: failed: {r['name']} ({r['scan']}): {r['error']}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def cmd_capture(args) -> int:
@@ -614,6 +652,7 @@ def main(argv=None) -> int:
         add(sub)
     for add in (_add_ingest, _add_relight, _add_maps, _add_export):
         add(sub)
+    _add_batch(sub)
     args = parser.parse_args(argv)
     if args.version:
         from . import __version__
@@ -628,6 +667,7 @@ def main(argv=None) -> int:
                 "select-lights": cmd_select_lights, "table1": cmd_table1, "estimate": cmd_estimate,
                 "capture": cmd_capture, "fold": cmd_fold, "figure18": cmd_figure18}
     commands.update({"ingest": cmd_ingest, "relight": cmd_relight, "maps": cmd_maps, "export": cmd_export})
+    commands["batch"] = cmd_batch
     try:
         return commands[args.command](args)
     except (ValueError, FileNotFoundError, IsADirectoryError) as exc:
