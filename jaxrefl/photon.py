@@ -44,7 +44,7 @@ import numpy as np
 from . import brdf, gather
 from .raycast import RayCaster
 
-__all__ = ["PhotonPaths", "trace_photons", "PhotonReplay", "relight_indirect", "photon_powers"]
+__all__ = ["PhotonPaths", "trace_photons", "PhotonReplay", "relight_indirect", "photon_powers", "replay_parts"]
 
 #: Largest share of directions drawn from the Ward lobe; the rest are cosine-weighted,
 #: which keeps the proposal density > 0 wherever any BRDF is.
@@ -524,13 +524,23 @@ def _parts_from_powers(data: _Data, power, alpha, static: _Static):
                                   alpha, static.n_points, static.n_lights, static.n_levels)
 
 
-@partial(jax.jit, static_argnames="static")
-def _indirect(data: _Data, pd, ps, alpha, static: _Static):
+def replay_parts(data: _Data, static: _Static, pd, ps, alpha):
+    """`(D, Q)` `(N, M, 3)` each under Ward reflectance `(pd, ps, alpha)` (see
+    `PhotonReplay.parts`): photon powers by path replay, gathered with `alpha`;
+    0 where a vertex faces away from its camera. Pure `jnp`, for use inside a
+    caller's `jit` with a replay's `data` and (static) `static`."""
     pd, ps, alpha = _params(data, pd, ps, alpha)
     power = _powers(data, pd, ps, alpha, static)
     d, q = _parts_from_powers(data, power, alpha, static)
-    rad = pd[:, None, :] / jnp.pi * d + ps[:, None, None] * q
-    return jnp.where(data.facing[..., None], rad, 0.0)
+    facing = data.facing[..., None]
+    return jnp.where(facing, d, 0.0), jnp.where(facing, q, 0.0)
+
+
+@partial(jax.jit, static_argnames="static")
+def _indirect(data: _Data, pd, ps, alpha, static: _Static):
+    d, q = replay_parts(data, static, pd, ps, alpha)
+    pd, ps, _ = _params(data, pd, ps, alpha)
+    return pd[:, None, :] / jnp.pi * d + ps[:, None, None] * q
 
 
 @partial(jax.jit, static_argnames="static")

@@ -1,0 +1,502 @@
+"""Method III: inverse photon mapping (paper §5), diffuse and specular
+interreflections removed.
+
+Model of observation `(x, j)` (Ward, `jaxrefl.brdf`), radiance [W/(sr m^2)]:
+
+    y_xj = pd_x / pi (E_xj + D_xj) + ps_x (E_xj k_xj(alpha_x) + Q_xj)
+
+with `E = Y cos_i / C^2` the direct irradiance (0 where shadowed or unused),
+`k` the unit Ward lobe of the direct light, and `D`, `Q` the photon map's
+incident flux density and lobe-weighted sum of light that reflected at least
+once (`jaxrefl.photon`, `jaxrefl.gather`), functions of every point's
+reflectance through the photon powers.
+
+Photon paths are traced once from a proposal (Method I's Ward estimate) and
+re-weighted by path replay, so each outer iteration is one compiled function of
+`(pd, ps, alpha)`; between blocks of `check_every` iterations the effective
+sample size is measured and the paths are re-traced from the current estimate
+when it has fallen below `retrace_ess`.
+
+Outer iteration `k` (all points at once, `jax.lax.scan` inside one `jit`):
+
+0. photon map `(D, Q)` at the current estimate; its image difference (Eq. 14,
+   noise-weighted: `sum w^2 (y - y_hat)^2` over all used samples) is recorded,
+   and the estimate with the smallest one is kept (§5.2);
+1. step (a): `pd` per channel by least squares over the point's `T_diff` samples
+   (all its samples when it has none) with `D` added to the irradiance and the
+   current specular part taken off (closed form, clipped to `[0, 1]`);
+2. step (b): `ps`, `alpha` from the `T_spec` and `T_none` samples with `pd`
+   fixed and `Q` held at the current `alpha`: `ps` projected out (least squares,
+   `0 <= ps <= PS_MAX`) and `ln alpha` by a 16-value grid then safeguarded Newton
+   steps (`solver='lm'`, `lm.gauss_newton_1d`), or both by a downhill simplex over
+   `(ln ps, ln alpha)` as the paper (`solver='simplex'`, optimistix NelderMead,
+   vmapped over the points). Only lobes the data pin down (the identifiability
+   test below) are taken; the others get the mean of those in their window, so
+   that an unmeasurable lobe cannot feed invented light to its neighbours;
+3. the new estimate moves a share `damping` of the way to (a) and (b) (0.5 by
+   default: the plain alternation swings between two states on Object E).
+
+After the iterations the specular part counts as measured where the point has
+a `T_spec` sample, two or more samples in step (b), `ps` above `min_snr`
+standard deviations and `ln alpha` known to +-1 (Gauss-Newton covariance,
+scaled by the reduced chi^2 when above 1); elsewhere `ps` and `alpha` come
+from the measured points in the `window` ring (log domain, `fill.window_fill`)
+and `pd` is refitted with that part (step (a) on the final photon map).
+
+Per-point lights (a rotating scanner, `light_pos` `(N, M, 3)`) are binned into
+light configurations as Method II (`radiosity.light_configs`, `light_bin`);
+each configuration gets `photons * M / C` photons.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from . import brdf
+from .classify import T_DIFF, T_SPEC, Thresholds
+from .fill import vertex_adjacency, window_fill
+from .lm import gauss_newton_1d
+from .local import INTERPOLATED, MEASURED, UNRESOLVED, Estimate, LocalOptions, _noise_weights, \
+    estimate_local, prepare_rows, quantisation_step
+from .photon import PhotonReplay, replay_parts
+from .radiosity import light_configs
+from .raycast import RayCaster
+
+__all__ = ["PhotonOptions", "estimate_photon", "ALPHA_RANGE"]
+
+#: Range of the Ward roughness alpha [rad] the fits search.
+ALPHA_RANGE = (0.005, 1.0)
+#: Largest specular reflectance the fits accept (an energy bound: larger values make the
+#: photon powers grow without limit along paths).
+PS_MAX = 1.0
+_GRID = 16
+
+
+@dataclass(frozen=True)
+class PhotonOptions:
+    """Method III settings (see the module docstring). `photons` emitted per
+    light; `iterations` outer iterations (the paper's th_2); `solver` 'lm' or
+    'simplex'; `steps` Newton steps in ln alpha per iteration (lm) or simplex
+    steps (simplex, x 10); `target_photons` effective photons per gather;
+    `retrace_ess` re-trace threshold on the effective sample size (fraction);
+    `check_every` iterations between checks; `damping` share of each
+    iteration's change taken (1: the paper's plain alternation, which on Object E
+    swings between two states); `light_bin` [m] for per-point lights; `local`
+    Method I options of the start (Ward)."""
+
+    photons: int = 1_000_000
+    iterations: int = 50
+    solver: str = "lm"
+    steps: int = 8
+    damping: float = 0.5
+    target_photons: float = 256.0
+    retrace_ess: float = 0.3
+    check_every: int = 10
+    light_bin: float = 0.1
+    seed: int = 0
+    min_snr: float = 3.0
+    window: int = 5
+    local: LocalOptions = field(default_factory=lambda: LocalOptions(model="ward"))
+
+    def __post_init__(self):
+        if self.solver not in ("lm", "simplex"):
+            raise ValueError(f"solver must be 'lm' or 'simplex', got {self.solver!r}")
+        if self.photons < 1000 or self.iterations < 1 or self.steps < 1 or self.check_every < 1:
+            raise ValueError("photons must be >= 1000; iterations, steps, check_every >= 1")
+        if not 0 < self.damping <= 1:
+            raise ValueError("damping must lie in (0, 1]")
+        if not 0 <= self.retrace_ess < 1:
+            raise ValueError("retrace_ess must lie in [0, 1)")
+        if self.local.model != "ward":
+            raise ValueError("Method III uses the Ward model: local.model must be 'ward'")
+
+    @property
+    def thresholds(self) -> Thresholds:
+        return self.local.thresholds
+
+
+# -- per-row pieces ----------------------------------------------------------------------
+
+
+def _lobe_rows(rho, ci, co, th):
+    """Unit Ward lobe `(N, M)` [1/sr] at `ln alpha = rho` `(N,)` (or `(N, 1)`)."""
+    return brdf.ward_specular(1.0, jnp.reshape(rho, (-1, 1)), ci, co, th)
+
+
+def _predicted(pd, ps, rho, r, d, q):
+    """Predicted radiance `(N, M, 3)` of every observation."""
+    k = _lobe_rows(rho, r["cos_i"], r["cos_o"], r["theta_r"])
+    e = r["e"][..., None]
+    return pd[:, None, :] / jnp.pi * (e + d) + ps[:, None, None] * (e * k[..., None] + q)
+
+
+def _image_difference(pd, ps, rho, r, d, q):
+    """Eq. 14 summed over the scan, noise-weighted, and the mean absolute difference."""
+    diff = jnp.where(r["use"][..., None], r["y"] - _predicted(pd, ps, rho, r, d, q), 0.0)
+    n = jnp.maximum(3.0 * jnp.sum(r["use"]), 1.0)
+    return jnp.sum(r["w2"] * diff**2), jnp.sum(jnp.abs(diff)) / n
+
+
+def _step_a(pd, ps, rho, r, d, q):
+    """pd `(N, 3)` by least squares over the step (a) samples, and its information
+    `sum w^2 (E + D)^2` `(N, 3)` (0 where the point has no sample)."""
+    k = _lobe_rows(rho, r["cos_i"], r["cos_o"], r["theta_r"])
+    e = r["e"][..., None]
+    a = r["a"][..., None]
+    x = (e + d) / jnp.pi
+    s = r["y"] - ps[:, None, None] * (e * k[..., None] + q)
+    num = jnp.sum(jnp.where(a, r["w2"] * x * s, 0.0), axis=1)
+    den = jnp.sum(jnp.where(a, r["w2"] * x * x, 0.0), axis=1)
+    ok = den > 0
+    new = jnp.where(ok, num / jnp.where(ok, den, 1.0), pd)
+    return jnp.clip(new, 0.0, 1.0), den
+
+
+def _spec_row(rho, s, e, ci, co, th, q, w2, b):
+    """Projected cost of one row at `ln alpha = rho` and its `ps >= 0`
+    (`s`, `q`, `w2` `(M, 3)`; the rest `(M,)`; `b` the step (b) mask)."""
+    k = brdf.ward_specular(1.0, rho, ci, co, th)
+    g = jnp.where(b[:, None], e[:, None] * k[:, None] + q, 0.0)
+    sv = jnp.where(b[:, None], s, 0.0)
+    sgg = jnp.sum(w2 * g * g)
+    ssg = jnp.sum(w2 * sv * g)
+    ps = jnp.where(sgg > 0, jnp.maximum(ssg, 0.0) / jnp.where(sgg > 0, sgg, 1.0), 0.0)
+    return jnp.sum(w2 * (sv - ps * g) ** 2), ps
+
+
+def _spec_args(pd, r, d, q):
+    s = r["y"] - pd[:, None, :] / jnp.pi * (r["e"][..., None] + d)
+    return (s, r["e"], r["cos_i"], r["cos_o"], r["theta_r"], q, r["w2"], r["b"])
+
+
+def _row_cost(rho, *args):
+    return _spec_row(rho, *args)[0]
+
+
+_cost_rows = jax.vmap(_row_cost)
+_grad_rows = jax.vmap(jax.value_and_grad(_row_cost))
+_hess_rows = jax.vmap(jax.hessian(_row_cost))
+
+
+def _step_b_lm(rho0, args, steps):
+    """`(ps, rho)` `(N,)` minimising the projected cost: grid start, then Newton."""
+    lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
+    grid = jnp.linspace(lo, hi, _GRID, dtype=rho0.dtype)
+    costs = jax.vmap(lambda g: _cost_rows(jnp.full_like(rho0, g), *args))(grid)  # (G, N)
+    c0 = _cost_rows(rho0, *args)
+    best = jnp.argmin(costs, axis=0)
+    start = jnp.where(c0 <= jnp.min(costs, axis=0), rho0, grid[best])
+
+    def evaluate(rho):
+        cost, g = _grad_rows(rho, *args)
+        h = _hess_rows(rho, *args)
+        return cost, 0.5 * g, 0.5 * h
+
+    rho, _ = gauss_newton_1d(evaluate, start, steps, lo, hi, radius=0.5)
+    _, ps = jax.vmap(_spec_row)(rho, *args)
+    return ps, rho
+
+
+def _step_b_simplex(ps0, rho0, args, steps):
+    """`(ps, rho)` by a downhill simplex over `(ln ps, ln alpha)` per row (the paper)."""
+    lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
+    solver = optx.NelderMead(rtol=1e-6, atol=1e-8)
+
+    def one(y0, row):
+        def cost(p, row):
+            ps = jnp.exp(jnp.clip(p[0], -20.0, 5.0))
+            rho = jnp.clip(p[1], lo, hi)
+            s, e, ci, co, th, q, w2, b = row
+            k = brdf.ward_specular(1.0, rho, ci, co, th)
+            g = jnp.where(b[:, None], e[:, None] * k[:, None] + q, 0.0)
+            return jnp.sum(jnp.where(b[:, None], w2 * (s - ps * g) ** 2, 0.0))
+
+        sol = optx.minimise(cost, solver, y0, row, max_steps=10 * steps, throw=False)
+        return jnp.exp(jnp.clip(sol.value[0], -20.0, 5.0)), jnp.clip(sol.value[1], lo, hi)
+
+    y0 = jnp.stack([jnp.log(jnp.maximum(ps0, 1e-4)), rho0], axis=1)
+    return jax.vmap(one)(y0, args)
+
+
+def _spec_information(ps, rho, args):
+    """Gauss-Newton covariance diagonal `(var ps, var rho)` and chi^2 of step (b) per row."""
+
+    def one(ps, rho, s, e, ci, co, th, q, w2, b):
+        def g_of(rr):
+            k = brdf.ward_specular(1.0, rr, ci, co, th)
+            return jnp.where(b[:, None], e[:, None] * k[:, None] + q, 0.0)
+
+        g = g_of(rho)
+        dg = jax.jacfwd(g_of)(rho)
+        j_ps, j_rho = g, ps * dg
+        a11, a12, a22 = jnp.sum(w2 * j_ps**2), jnp.sum(w2 * j_ps * j_rho), jnp.sum(w2 * j_rho**2)
+        det = a11 * a22 - a12**2
+        ok = det > 1e-30 * jnp.maximum(a11 * a22, 1e-300)
+        inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), jnp.inf)
+        chi2 = jnp.sum(jnp.where(b[:, None], w2 * (s - ps * g) ** 2, 0.0))
+        return a22 * inv_det, a11 * inv_det, chi2
+
+    return jax.vmap(one)(ps, rho, *args)
+
+
+def _identifiable(ps, var_ps, var_rho, chi2, rows, min_snr):
+    """Specular part measured: lobe evidence, `ps` above `min_snr` sd, `ln alpha` to +-1
+    (covariance scaled by the reduced chi^2 where it exceeds 1)."""
+    dof = jnp.maximum(3.0 * rows["n_b"] - 2.0, 1.0)
+    scale = jnp.maximum(1.0, chi2 / dof)
+    sd_ps, sd_rho = jnp.sqrt(var_ps * scale), jnp.sqrt(var_rho * scale)
+    return rows["lobe"] & jnp.isfinite(sd_ps) & jnp.isfinite(sd_rho) & (ps > min_snr * sd_ps) & (sd_rho < 1.0)
+
+
+def _window_reach(faces, n, window):
+    """`(rows, cols)` int32 of the `(window - 1) / 2`-ring around every vertex (itself included)."""
+    import scipy.sparse as sp
+
+    step = vertex_adjacency(faces, n) + sp.identity(n, format="csr")
+    reach = sp.identity(n, format="csr")
+    for _ in range((window - 1) // 2):
+        reach = reach @ step
+    reach = reach.tocoo()
+    return jnp.asarray(reach.row, jnp.int32), jnp.asarray(reach.col, jnp.int32)
+
+
+def _window_mean(x, known, reach, fallback):
+    """Mean of `x` over the known vertices in each vertex's window; `fallback` where none."""
+    rows, cols = reach
+    k = known[cols].astype(x.dtype)
+    num = jax.ops.segment_sum(k * x[cols], rows, num_segments=x.shape[0])
+    den = jax.ops.segment_sum(k, rows, num_segments=x.shape[0])
+    return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), fallback)
+
+
+# -- the outer loop ----------------------------------------------------------------------
+
+
+def _to_obs(x, index):
+    """Per-configuration `(N, C, 3)` to per-observation `(N, M, 3)`."""
+    if index is None:
+        return x
+    return jnp.take_along_axis(x, index[..., None], axis=1)
+
+
+@partial(jax.jit, static_argnames=("static", "n_iter", "solver", "steps"))
+def _block(data, static, index, rows, reach, theta, best, n_iter, solver, steps, damping, min_snr):
+    """`n_iter` outer iterations from `theta = (pd, ps, rho)`; `best = (theta, cost)`.
+
+    **Returns:** `(theta, best, history)`, `history = (cost, mean_abs)` `(n_iter,)`
+    each: the image difference of the estimate each iteration started from."""
+
+    def body(carry, _):
+        (pd, ps, rho), (best_theta, best_cost) = carry
+        d, q = (_to_obs(x, index) for x in replay_parts(data, static, pd, ps, jnp.exp(rho)))
+        cost, mad = _image_difference(pd, ps, rho, rows, d, q)
+        better = cost < best_cost
+        best_theta = jax.tree_util.tree_map(lambda new, old: jnp.where(better, new, old), (pd, ps, rho), best_theta)
+        best_cost = jnp.where(better, cost, best_cost)
+        pd_new, _ = _step_a(pd, ps, rho, rows, d, q)
+        pd = pd + damping * (pd_new - pd)
+        args = _spec_args(pd, rows, d, q)
+        if solver == "lm":
+            ps_new, rho_new = _step_b_lm(rho, args, steps)
+        else:
+            ps_new, rho_new = _step_b_simplex(ps, rho, args, steps)
+        ps_new = jnp.minimum(ps_new, PS_MAX)
+        # Lobes the data pin down move; the others take the mean of those in their window.
+        var_ps, var_rho, chi2 = _spec_information(ps_new, rho_new, _spec_args(pd, rows, d, q))
+        known = _identifiable(ps_new, var_ps, var_rho, chi2, rows, min_snr)
+        ln_ps = jnp.log(jnp.maximum(ps_new, 1e-12))
+        ps_new = jnp.where(known, ps_new, jnp.exp(_window_mean(ln_ps, known, reach, jnp.log(jnp.maximum(ps, 1e-12)))))
+        rho_new = jnp.where(known, rho_new, _window_mean(rho_new, known, reach, rho))
+        ps = ps + damping * (ps_new - ps)
+        rho = rho + damping * (rho_new - rho)
+        return ((pd, ps, rho), (best_theta, best_cost)), (cost, mad)
+
+    (theta, best), hist = jax.lax.scan(body, (theta, best), None, length=n_iter)
+    return theta, best, hist
+
+
+@partial(jax.jit, static_argnames=("static",))
+def _final(data, static, index, rows, theta):
+    """Photon map at `theta`: image difference, step (a) and step (b) statistics."""
+    pd, ps, rho = theta
+    d, q = (_to_obs(x, index) for x in replay_parts(data, static, pd, ps, jnp.exp(rho)))
+    cost, mad = _image_difference(pd, ps, rho, rows, d, q)
+    pd_new, info_pd = _step_a(pd, ps, rho, rows, d, q)
+    args = _spec_args(pd, rows, d, q)
+    var_ps, var_rho, chi2 = _spec_information(ps, rho, args)
+    return dict(cost=cost, mad=mad, pd=pd_new, info_pd=info_pd, var_ps=var_ps, var_rho=var_rho, chi2=chi2,
+                d=d, q=q)
+
+
+def _observation_cameras(scan, configs):
+    """`(N, C, 3)` camera of each (point, configuration): the observation's camera where
+    the point is observed under that configuration, else a point on its normal."""
+    cam = scan.camera_positions()
+    n = scan.n_points
+    out = scan.vertices[:, None, :] + scan.normals[:, None, :] + np.zeros((1, len(configs.positions), 1))
+    out[np.arange(n)[:, None], configs.index] = cam
+    return out
+
+
+def _start(est: Estimate):
+    """A valid Ward start/proposal from a Method I estimate."""
+    pd = np.clip(est.pd, 0.0, 1.0)
+    ps = np.clip(np.nan_to_num(est.ps), 0.0, PS_MAX)
+    alpha = np.where(est.roughness > 0, est.roughness, 0.1)
+    return pd, ps, np.clip(alpha, *ALPHA_RANGE)
+
+
+def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayCaster | None = None,
+                    progress=None) -> Estimate:
+    """Method III on a scan with radiance (see the module docstring).
+
+    **Returns:** `Estimate` (model 'ward') with `meta['method'] == 'photon'`;
+    `meta['image_difference']` per iteration (`cost` Eq. 14 noise-weighted,
+    `mean_abs` [W/(sr m^2)]), `meta['best_iteration']`, re-traces, effective
+    sample sizes and seconds per stage. `progress(done, total)` is called after
+    every block of iterations when given.
+    """
+    if scan.radiance is None:
+        raise ValueError("radiance: the scan has no observations to estimate from")
+    timings = {}
+    t0 = time.perf_counter()
+    caster = caster or RayCaster(scan.vertices, scan.faces)
+    init = estimate_local(scan, options.local, caster)
+    timings["local_start"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    rows_np = prepare_rows(scan, options.thresholds, caster)
+    use, classes = rows_np["use"], rows_np["classes"]
+    has_diff = (use & (classes == T_DIFF)).any(1)
+    a_mask = np.where(has_diff[:, None], use & (classes == T_DIFF), use)
+    b_mask = use & (classes != T_DIFF)
+    n_spec = (use & (classes == T_SPEC)).sum(1)
+    q_step = quantisation_step(scan.radiance, use)
+    w = np.asarray(_noise_weights(jnp.asarray(rows_np["y"]), jnp.asarray(use), q_step / np.sqrt(12.0)))
+    rows = {k: jnp.asarray(rows_np[k]) for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
+    # Only points with lobe evidence (a T_spec sample and two step (b) samples) move their
+    # lobe; the others keep the start's (interpolated) one until the final fill.
+    lobe = (n_spec >= 1) & (b_mask.sum(1) >= 2)
+    rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(a_mask), b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe),
+                n_b=jnp.asarray(b_mask.sum(1)))
+    reach = _window_reach(scan.faces, scan.n_points, options.window)
+    configs = light_configs(scan.light_pos, scan.n_points, options.light_bin)
+    n_cfg = len(configs.positions)
+    per_config = scan.light_pos.ndim == 3
+    index = jnp.asarray(configs.index) if per_config else None
+    photons = int(max(1000, round(options.photons * scan.n_lights / n_cfg)))
+    timings["prepare"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    pd0, ps0, alpha0 = _start(init)
+    replay = PhotonReplay.build(caster, scan.vertices, scan.faces, scan.normals, configs.positions,
+                                scan.intensities()[configs.light], _observation_cameras(scan, configs),
+                                (pd0, ps0, alpha0), n_photons=photons, target_photons=options.target_photons,
+                                seed=options.seed)
+    timings["trace"] = time.perf_counter() - t0
+    dt = rows["y"].dtype
+    theta = (jnp.asarray(pd0, dt), jnp.asarray(ps0, dt), jnp.asarray(np.log(alpha0), dt))
+    best = (theta, jnp.asarray(np.inf, dt))
+    costs, mads, retraces, ess_log = [], [], [], []
+    timings["iterations"] = 0.0
+    done = 0
+    while done < options.iterations:
+        n_iter = min(options.check_every, options.iterations - done)
+        t0 = time.perf_counter()
+        theta, best, (c, m) = _block(replay.data, replay.static, index, rows, reach, theta, best, n_iter,
+                                     options.solver, options.steps, options.damping, options.min_snr)
+        costs += np.asarray(c).tolist()
+        mads += np.asarray(m).tolist()
+        done += n_iter
+        timings["iterations"] += time.perf_counter() - t0
+        if progress is not None:
+            progress(done, options.iterations)
+        if done < options.iterations:
+            ess = float(np.min(np.asarray(replay.ess(theta[0], theta[1], jnp.exp(theta[2])))))
+            ess_log.append({"iteration": done, "ess": ess})
+            if ess < options.retrace_ess:
+                t0 = time.perf_counter()
+                replay = replay.retrace(*(np.asarray(x, np.float64) for x in (theta[0], theta[1],
+                                                                              jnp.exp(theta[2]))),
+                                        seed=options.seed + 1 + len(retraces))
+                retraces.append({"iteration": done, "ess": ess, "seconds": time.perf_counter() - t0})
+                timings["trace"] += retraces[-1]["seconds"]
+
+    t0 = time.perf_counter()
+    last = _final(replay.data, replay.static, index, rows, theta)
+    costs.append(float(last["cost"]))
+    mads.append(float(last["mad"]))
+    if float(last["cost"]) < float(best[1]):
+        best = (theta, last["cost"])
+    best_iteration = int(np.argmin(costs))
+    fin = _final(replay.data, replay.static, index, rows, best[0])
+    pd, ps, rho = (np.array(x, np.float64) for x in best[0])
+    alpha = np.exp(rho)
+
+    # Identifiability of the specular part, then the window fill and pd with it.
+    dof = np.maximum(3.0 * b_mask.sum(1) - 2.0, 1.0)
+    scale = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)
+    sd_ps = np.sqrt(np.asarray(fin["var_ps"]) * scale)
+    sd_rho = np.sqrt(np.asarray(fin["var_rho"]) * scale)
+    identifiable = np.asarray(_identifiable(jnp.asarray(ps), fin["var_ps"], fin["var_rho"], fin["chi2"], rows,
+                                            options.min_snr))
+    observed_any = use.any(1)
+    status = np.full(scan.n_points, MEASURED, np.int8)
+    adjacency = vertex_adjacency(scan.faces, scan.n_points)
+    if identifiable.any():
+        logs = np.c_[np.log(np.maximum(ps, 1e-12)), rho]
+        filled = window_fill(logs, identifiable, adjacency, options.window)
+        ps = np.where(identifiable, ps, np.exp(filled.values[:, 0]))
+        alpha = np.where(identifiable, alpha, np.exp(filled.values[:, 1]))
+        status[filled.window] = INTERPOLATED
+        status[filled.diffused] = UNRESOLVED
+        refit = ~identifiable & observed_any
+        if refit.any():
+            theta_f = tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(alpha)))
+            fin = _final(replay.data, replay.static, index, rows, theta_f)
+            pd = np.where(refit[:, None], np.asarray(fin["pd"], np.float64), pd)
+    else:  # no specular reflection measured anywhere: none reported, roughness undefined (0)
+        ps, alpha = np.zeros_like(ps), np.zeros_like(alpha)
+        status[:] = UNRESOLVED
+    scale_a = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
+    info = np.asarray(fin["info_pd"], np.float64)
+    std_pd = np.where(info > 0, np.sqrt(scale_a / np.where(info > 0, info, 1.0)), np.inf)
+    std_ps = np.where(identifiable, sd_ps, np.inf)
+    std_alpha = np.where(identifiable, alpha * sd_rho, np.inf)
+    if (~observed_any).any():
+        if observed_any.any():
+            filled = window_fill(pd, observed_any, adjacency, options.window)
+            pd[~observed_any] = filled.values[~observed_any]
+            status[~observed_any & filled.window] = np.maximum(status[~observed_any & filled.window], INTERPOLATED)
+            status[~observed_any & filled.diffused] = UNRESOLVED
+        else:
+            status[:] = UNRESOLVED
+        std_pd[~observed_any] = np.inf
+    timings["fill"] = time.perf_counter() - t0
+
+    for a in (pd, ps, alpha):
+        np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    for a in (std_pd, std_ps, std_alpha):
+        np.nan_to_num(a, copy=False, nan=np.inf, posinf=np.inf)
+    meta = {
+        "method": "photon", "model": "ward",
+        "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in asdict(options).items()},
+        "seconds": timings,
+        "image_difference": {"cost": costs, "mean_abs": mads},
+        "best_iteration": best_iteration,
+        "retraces": retraces, "ess": ess_log,
+        "photons_per_configuration": photons, "light_configurations": n_cfg,
+        "stored_photons": int(replay.n_photons),
+        "quantisation_step": q_step,
+        "points_with_observations": int(observed_any.sum()),
+        "points_with_diffuse_only_sample": int(has_diff.sum()),
+        "start": {"coverage": float(np.mean(init.status == MEASURED))},
+    }
+    return Estimate(pd, ps, alpha, status, std_pd, std_ps, std_alpha, identifiable, observed_any, "ward", meta)
