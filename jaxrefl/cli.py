@@ -113,9 +113,10 @@ def _add_estimate(sub):
 
 def _add_estimate_options(p):
     """The estimator options, shared by `estimate` and `batch`."""
-    p.add_argument("--method", choices=["local", "radiosity"], default="local",
+    p.add_argument("--method", choices=["local", "radiosity", "photon"], default="local",
                    help="local: Method I, inverse local rendering (§3); radiosity: Method II, inverse "
-                        "radiosity, diffuse interreflections removed (§4)")
+                        "radiosity, diffuse interreflections removed (§4); photon: Method III, inverse "
+                        "photon mapping, diffuse and specular interreflections removed (§5, Ward model)")
     p.add_argument("--model", choices=["torrance-sparrow", "ward"], default="torrance-sparrow")
     p.add_argument("--paper", action="store_true",
                    help="the paper's estimator: Eq. 5 single best diffuse sample, Eq. 7 from two samples")
@@ -130,6 +131,14 @@ def _add_estimate_options(p):
     g.add_argument("--light-bin", type=float, default=0.1,
                    help="per-point lights: bin size [m] of the light configurations for later bounces")
     g.add_argument("--outer", type=int, default=3, help="alternations of pd and the specular part")
+    g = p.add_argument_group("photon (Method III; always the Ward model)")
+    g.add_argument("--photons", type=int, default=1_000_000, help="photons emitted per light")
+    g.add_argument("--iterations", type=int, default=50, help="outer iterations (the paper's th_2)")
+    g.add_argument("--photon-solver", choices=["lm", "simplex"], default="lm",
+                   help="step (b): Newton in ln alpha with ps projected out, or the paper's downhill simplex")
+    g.add_argument("--damping", type=float, default=0.5, help="share of each iteration's change taken")
+    g.add_argument("--retrace-ess", type=float, default=0.3,
+                   help="re-trace the photons when the effective sample size falls below this fraction")
 
 
 def _add_batch(sub):
@@ -301,11 +310,21 @@ def estimate_to_file(scan_path, out, args) -> dict:
 
         est = estimate_radiosity(scan, RadiosityOptions(rays=args.rays, light_bin=args.light_bin, outer=args.outer,
                                                         paper=args.paper, local=options))
+    elif args.method == "photon":
+        import dataclasses
+
+        from .inverse_photon import PhotonOptions, estimate_photon
+
+        est = estimate_photon(scan, PhotonOptions(photons=args.photons, iterations=args.iterations,
+                                                  solver=args.photon_solver, damping=args.damping,
+                                                  retrace_ess=args.retrace_ess, light_bin=args.light_bin,
+                                                  min_snr=args.min_snr, window=args.window,
+                                                  local=dataclasses.replace(options, model="ward")))
     else:
         est = estimate_local(scan, options)
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
     save_result(out, est)
-    return {"method": args.method, "model": args.model, "out": str(out), **estimate_summary(est, scan)}
+    return {"method": args.method, "model": est.model, "out": str(out), **estimate_summary(est, scan)}
 
 
 def estimate_summary(est, scan) -> dict:
@@ -320,7 +339,8 @@ def estimate_summary(est, scan) -> dict:
         "status_counts": {name: int(np.sum(est.status == code))
                           for code, name in enumerate(("measured", "interpolated", "unresolved"))},
     }
-    summary.update({k: est.meta[k] for k in ("outer_iterations", "form_factors", "light_configurations")
+    summary.update({k: est.meta[k] for k in ("outer_iterations", "form_factors", "light_configurations",
+                                             "image_difference", "best_iteration", "retraces")
                     if k in est.meta})
     if scan.true_pd is not None:
         summary["errors"] = truth_errors(est, scan)
