@@ -225,25 +225,36 @@ def _step_b_simplex(ps0, rho0, args, steps):
     return jax.vmap(one)(y0, args)
 
 
-def _spec_information(ps, rho, args):
-    """Gauss-Newton covariance diagonal `(var ps, var rho)` and chi^2 of step (b) per row."""
+def _spec_information(ps, rho, args, pd, d, joint):
+    """Gauss-Newton covariance diagonal `(var ps, var rho)` and chi^2 of step (b) per row.
 
-    def one(ps, rho, s, e, ci, co, th, q, w2, b):
+    Where `joint` (the point has no `T_diff` sample, so pd is fitted from the same
+    samples) a grey scale of pd is a third parameter: a broad lobe and pd explain such
+    samples almost equally well, and the variances must say so."""
+
+    def one(ps, rho, s, e, ci, co, th, q, w2, b, pd, d, joint):
         def g_of(rr):
             k = brdf.ward_specular(1.0, rr, ci, co, th)
             return jnp.where(b[:, None], e[:, None] * k[:, None] + q, 0.0)
 
         g = g_of(rho)
-        dg = jax.jacfwd(g_of)(rho)
-        j_ps, j_rho = g, ps * dg
-        a11, a12, a22 = jnp.sum(w2 * j_ps**2), jnp.sum(w2 * j_ps * j_rho), jnp.sum(w2 * j_rho**2)
-        det = a11 * a22 - a12**2
-        ok = det > 1e-30 * jnp.maximum(a11 * a22, 1e-300)
+        j_ps, j_rho = g, ps * jax.jacfwd(g_of)(rho)
+        j_pd = jnp.where(b[:, None], pd[None, :] * (e[:, None] + d) / jnp.pi, 0.0)
+        cols = (j_pd, j_ps, j_rho)
+        a = [[jnp.sum(w2 * cols[i] * cols[j]) for j in range(3)] for i in range(3)]
+        det2 = a[1][1] * a[2][2] - a[1][2] ** 2
+        det3 = a[0][0] * det2 - a[0][1] * (a[0][1] * a[2][2] - a[1][2] * a[0][2]) \
+            + a[0][2] * (a[0][1] * a[1][2] - a[1][1] * a[0][2])
+        num_ps = jnp.where(joint, a[0][0] * a[2][2] - a[0][2] ** 2, a[2][2])
+        num_rho = jnp.where(joint, a[0][0] * a[1][1] - a[0][1] ** 2, a[1][1])
+        det = jnp.where(joint, det3, det2)
+        scale = jnp.where(joint, a[0][0] * a[1][1] * a[2][2], a[1][1] * a[2][2])
+        ok = det > 1e-12 * jnp.maximum(scale, 1e-300)
         inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), jnp.inf)
         chi2 = jnp.sum(jnp.where(b[:, None], w2 * (s - ps * g) ** 2, 0.0))
-        return a22 * inv_det, a11 * inv_det, chi2
+        return num_ps * inv_det, num_rho * inv_det, chi2
 
-    return jax.vmap(one)(ps, rho, *args)
+    return jax.vmap(one)(ps, rho, *args, pd, d, joint)
 
 
 def _identifiable(ps, var_ps, var_rho, chi2, rows, min_snr):
@@ -309,7 +320,7 @@ def _block(data, static, index, rows, reach, theta, best, n_iter, solver, steps,
             ps_new, rho_new = _step_b_simplex(ps, rho, args, steps)
         ps_new = jnp.minimum(ps_new, PS_MAX)
         # Lobes the data pin down move; the others take the mean of those in their window.
-        var_ps, var_rho, chi2 = _spec_information(ps_new, rho_new, _spec_args(pd, rows, d, q))
+        var_ps, var_rho, chi2 = _spec_information(ps_new, rho_new, args, pd, d, rows["joint"])
         known = _identifiable(ps_new, var_ps, var_rho, chi2, rows, min_snr)
         ln_ps = jnp.log(jnp.maximum(ps_new, 1e-12))
         ps_new = jnp.where(known, ps_new, jnp.exp(_window_mean(ln_ps, known, reach, jnp.log(jnp.maximum(ps, 1e-12)))))
@@ -330,7 +341,7 @@ def _final(data, static, index, rows, theta):
     cost, mad = _image_difference(pd, ps, rho, rows, d, q)
     pd_new, info_pd = _step_a(pd, ps, rho, rows, d, q)
     args = _spec_args(pd, rows, d, q)
-    var_ps, var_rho, chi2 = _spec_information(ps, rho, args)
+    var_ps, var_rho, chi2 = _spec_information(ps, rho, args, pd, d, rows["joint"])
     return dict(cost=cost, mad=mad, pd=pd_new, info_pd=info_pd, var_ps=var_ps, var_rho=var_rho, chi2=chi2,
                 d=d, q=q)
 
@@ -385,6 +396,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     # lobe; the others keep the start's (interpolated) one until the final fill.
     lobe = (n_spec >= 1) & (b_mask.sum(1) >= 2)
     rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(a_mask), b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe),
+                joint=jnp.asarray(~has_diff),
                 n_b=jnp.asarray(b_mask.sum(1)))
     reach = _window_reach(scan.faces, scan.n_points, options.window)
     configs = light_configs(scan.light_pos, scan.n_points, options.light_bin)

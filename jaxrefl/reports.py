@@ -132,20 +132,23 @@ def table1(out_dir: str, resolution: int = 64, objects=("A", "B", "C", "D"), th1
     return {"rows": rows, "markdown": text}
 
 
-def fold_profile(scan, results: dict, out_png: str | None = None, near: float = 0.02, bins: int = 30) -> dict:
+def fold_profile(scan, results: dict, out_png: str | None = None, near: float = 0.02, bins: int = 30,
+                 fold=None) -> dict:
     """pd across the fold of Object E.
 
     **Arguments:** `scan` the Object E scan (its vertices give the signed
     distance from the fold, `data_synth.objects.fold_coordinate`); `results`
     label -> `Estimate`; `out_png` where to draw the three channel panels (pd
-    averaged along the fold in `bins` bins; truth dashed); `near` [m].
+    averaged along the fold in `bins` bins; truth dashed); `near` [m]; `fold`
+    `(N,)` the signed distance [m] when the scan's vertices are not in E's own
+    frame (e.g. `make_scan(tilt_deg=...)`).
 
     **Returns:** per label, the mean relative pd error of points with their own
     samples within `near` of the fold and farther away, and the binned profile.
     """
     from data_synth.objects import fold_coordinate
 
-    fold = fold_coordinate(scan.vertices)
+    fold = fold_coordinate(scan.vertices) if fold is None else np.asarray(fold, dtype=np.float64)
     edges = np.linspace(fold.min(), fold.max(), bins + 1)
     centres = 0.5 * (edges[1:] + edges[:-1])
     which = np.clip(np.digitize(fold, edges) - 1, 0, bins - 1)
