@@ -3,9 +3,9 @@
 For every point and candidate light, in one vectorised pass:
 
 - *measurable* (Eq. 2 plus visibility): the camera and the light are both above
-  the surface (`V.N > 0`, `L.N > 0`), the camera sees the point and the light
-  reaches it (Embree segment tests), and, when images exist, the sample was
-  observed and is not saturated;
+  the surface (`V.N > 0`, `L.N > 0`, by more than `brdf.COS_FLOOR`), the camera
+  sees the point and the light reaches it (Embree segment tests), and, when
+  images exist, the sample was observed and is not saturated;
 - *diffuse-only* (Eq. 3): measurable and `theta_r > theta_th1` (default 60°);
 - *strong specular* (Eq. 4): measurable and `theta_r <= theta_th2` (default 20°).
 
@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .brdf import COS_FLOOR
 from .mesh import vertex_areas
 from .raycast import RayCaster
 from .rig import observation_angles
@@ -92,10 +93,14 @@ def classify(points, normals, cam_pos, light_pos, caster: RayCaster,
     cam = np.asarray(cam_pos, dtype=np.float64)
     cam = cam.reshape((1,) * (3 - cam.ndim) + cam.shape)  # (1 or N, 1 or K, 3)
     cam_visible = np.broadcast_to(caster.visibility(cam[0] if cam.shape[0] == 1 else cam), (n, k))
-    seen = np.any((cos_o > 0) & cam_visible, axis=1)
+    # "Above the surface" to more than rounding: a point seen or lit edge-on (cosine at
+    # rounding level, e.g. on a fold seen along it) has no image area, and the models'
+    # 1 / cos factors are floored there (`brdf.COS_FLOOR`), so they cannot fit it.
+    facing_cam, facing_light = cos_o > COS_FLOOR, cos_i > COS_FLOOR
+    seen = np.any(facing_cam & cam_visible, axis=1)
 
     # Shadow rays only where everything else already holds.
-    candidate = (cos_i > 0) & (cos_o > 0) & cam_visible
+    candidate = facing_light & facing_cam & cam_visible
     if observed is not None:
         observed = np.asarray(observed, dtype=bool)
         if observed.shape != (n, k):

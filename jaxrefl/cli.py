@@ -124,8 +124,9 @@ def _add_estimate_options(p):
     p.add_argument("--steps", type=int, default=15, help="Newton steps of the polish in ln roughness (solver lm)")
     p.add_argument("--solver", choices=["lm", "optimistix"], default="lm")
     p.add_argument("--min-snr", type=float, default=3.0, help="ps / std(ps) needed to call it measured")
-    p.add_argument("--pool", action="store_true",
-                   help="experimental: points without their own lobe share it with same-colour neighbours")
+    p.add_argument("--pool", action=argparse.BooleanOptionalAction, default=True,
+                   help="points without their own lobe share one fitted with same-colour neighbours "
+                        "(default; --no-pool: window interpolation only)")
     g = p.add_argument_group("radiosity (Method II)")
     g.add_argument("--rays", type=int, default=256, help="form-factor rays per patch (vertex)")
     g.add_argument("--light-bin", type=float, default=0.1,

@@ -27,17 +27,27 @@ Per point, from its classified samples (`classify`):
    chunk of rows. Standard deviations from the Gauss-Newton covariance.
    `solver="optimistix"` polishes the full model with optimistix's
    Levenberg-Marquardt from both starts instead (slower; for comparison).
-4. **Identifiability** — the specular part counts as measured when the point
-   has two or more usable `T_spec` samples, the fit is finite, and `ps` stands
-   `min_snr` standard deviations above 0 with roughness known to a factor
-   `e`. Otherwise ps and roughness come from the measured points in the
-   `window`-ring (`fill.window_fill`, in the log domain) and pd is re-fitted
-   with that specular part fixed (closed form).
+4. **Identifiability** — the specular part counts as measured when the fit
+   is finite, ps stands `min_snr` standard deviations above 0 with roughness
+   known to a factor `e`, and the lobe was seen: at least one `T_spec` sample
+   (near the peak; a "lobe" fitted to flank samples alone is a smooth trend
+   that interreflections or any other diffuse-model mismatch imitate) and two
+   samples in which the fitted specular part stands `min_snr` noise standard
+   deviations high (with one, ps and roughness trade off along a valley). The
+   residual variance of a row is at least the median row's (`_noise_scale`):
+   a few samples, whose RGB channels often share their error, cannot show a
+   noise far below everyone else's. (`paper=True`: two `T_spec` samples.)
+   Otherwise, with `pool` (default), a lobe fitted jointly with the
+   same-material neighbours (`pool.pooled_specular`) where it is itself
+   identifiable; else ps and roughness come from the points with their own
+   lobe in the `window`-ring (`fill.window_fill`, in the log domain). Either
+   way pd is re-fitted with that specular part fixed (closed form).
 
 Status per point: 0 `measured` (everything from its own samples), 1
-`interpolated` (specular, or with no own sample pd too, from the window), 2
-`unresolved` (nothing measured within the window: filled from farther away;
-its standard deviations are infinite).
+`interpolated` (specular pooled, with finite std, or from the window; or with
+no own sample pd too, from the window), 2 `unresolved` (nothing measured
+within the window: filled from farther away, or 0 when no point has a lobe of
+its own; its standard deviations are infinite).
 """
 
 from __future__ import annotations
@@ -76,7 +86,7 @@ class LocalOptions:
     window: int = 5
     min_snr: float = 3.0
     solver: str = "lm"
-    pool: bool = False
+    pool: bool = True
     pool_neighbours: int = 12
     pool_tau: float = 0.05
     thresholds: Thresholds = field(default_factory=Thresholds)
@@ -275,7 +285,8 @@ def _specular_init(model, rows, pd, paper):
 
 
 def _refit_diffuse(model, data, ln_ps, ln_rough, w):
-    """Closed-form pd `(N, 3)` and its std with the specular part fixed, over all valid samples."""
+    """Closed-form pd `(N, 3)` (within the fit's bounds `[0, 1]`) and its std with the
+    specular part fixed, over all valid samples."""
     _, spec_fn = brdf.MODELS[model]
     spec = jax.vmap(jax.vmap(spec_fn, in_axes=(None, None, 0, 0, 0)))(
         jnp.exp(ln_ps), ln_rough, data["cos_i"], data["cos_o"], data["theta_r"])
@@ -289,7 +300,7 @@ def _refit_diffuse(model, data, ln_ps, ln_rough, w):
     n = data["use"].sum(1)
     s2 = jnp.sum(resid**2, 1) / jnp.maximum(n - 1, 1)[:, None]  # per channel
     std = jnp.pi * jnp.sqrt(s2 / jnp.maximum(den, 1e-300))
-    return jnp.maximum(pd, 0.0), jnp.where(n[:, None] > 1, std, jnp.inf)
+    return jnp.clip(pd, 0.0, 1.0), jnp.where(n[:, None] > 1, std, jnp.inf)  # the fit's bounds
 
 
 def _solve_optimistix(residual, p0, data, steps):
@@ -508,10 +519,25 @@ def _polish(prep, rows, noise_floor, model, paper, solver, steps):
         # Rows the data cannot pin down may wander; keep them in range (they stay flagged).
         params = jnp.clip(params, np.array([[0.0]] * 4 + [[_LN_ROUGH_LO]]), np.array([[_PS_MAX]] * 4 + [[_LN_ROUGH_HI]]))
         params, cost, var = _solution(model, lobe, terms, params=params)
-    dof = prep["dof"]
-    var = var * (cost / jnp.maximum(dof, 1))[None]
-    var = jnp.where((dof > 0)[None] & jnp.isfinite(var), var, jnp.inf)
-    return {"params": params, "var": var, "spec_ok": spec_ok, "n_spec": prep["n_spec"], "has_diff": prep["has_diff"]}
+    return {"params": params, "var": var, "cost": cost, "dof": prep["dof"], "spec_ok": spec_ok,
+            "n_spec": prep["n_spec"], "has_diff": prep["has_diff"],
+            "lobe_second": _second_largest(_lobe_signal(model, lobe, terms, params))}
+
+
+def _lobe_signal(model, lobe, terms, params):
+    """Per sample (list of `(n,)`): the squared weighted size of the fitted specular part,
+    `sum_c (w_jc ps b_j)^2` (its squared signal-to-noise ratio for unit residual variance)."""
+    b, _ = _lobes(model, lobe, params[4])
+    return [(params[3] * bj) ** 2 * terms["wsum"][j] for j, bj in enumerate(b)]
+
+
+def _second_largest(values):
+    """Second largest of a list of `(n,)` arrays, elementwise."""
+    first, second = values[0], jnp.zeros_like(values[0])
+    for v in values[1:]:
+        second = jnp.maximum(second, jnp.minimum(first, v))
+        first = jnp.maximum(first, v)
+    return second
 
 
 def _bucket(n: int, step: int) -> int:
@@ -562,6 +588,22 @@ def _fit(rows, options, noise_floor, steps):
     return {k: np.concatenate([np.asarray(o[k]) for o in outs], axis=-1).T[:n_rows] for k in outs[0]}
 
 
+_MIN_SPEC = 1  # T_spec samples a point needs for its own lobe (the paper's Eq. 7: 2)
+
+
+def _noise_scale(cost, dof):
+    """Residual variance per row `(N,)`, at least the median over the rows (inf where
+    `dof <= 0`).
+
+    A row's own `cost / dof` rests on a few samples (its RGB channels share
+    the lobe, and often the noise: grey objects, Monte Carlo renders), so by
+    chance it can be far below the noise; the scan-wide median cannot.
+    """
+    ok = (dof > 0) & np.isfinite(cost)
+    s2 = np.where(ok, cost / np.maximum(dof, 1), np.inf)
+    return np.maximum(s2, np.median(s2[ok])) if ok.any() else s2
+
+
 class RowFit(dict):
     """`fit_rows` output (a dict): `pd` `(N, 3)`, `ps` `(N,)`, `roughness` `(N,)` [rad]
     and their standard deviations `std_pd`, `std_ps`, `std_roughness` (inf where
@@ -576,13 +618,24 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     quantisation step / sqrt(12)).
     """
     out = _fit(rows, options, noise_floor, options.steps)
-    params, var = out["params"], out["var"]
-    spec_ok, n_spec, has_diff = out["spec_ok"], out["n_spec"], out["has_diff"]
-    sd = np.sqrt(np.where(np.isfinite(var), np.maximum(var, 0.0), np.inf))
+    params, spec_ok, n_spec, has_diff = out["params"], out["spec_ok"], out["n_spec"], out["has_diff"]
+    s2 = _noise_scale(out["cost"], out["dof"])
+    var = np.where(np.isfinite(out["var"]) & np.isfinite(s2)[:, None], out["var"] * s2[:, None], np.inf)
+    sd = np.sqrt(np.maximum(var, 0.0))
     rough = np.exp(params[:, 4])
-    # The paper needs two T_spec samples; the full-model fit can also pin the lobe down
-    # from T_none samples, so identifiability is judged on the fit's own uncertainty.
-    enough = n_spec >= 2 if options.paper else np.asarray(rows["use"]).sum(1) >= 3
+    use = np.asarray(rows["use"])
+    if options.paper:
+        enough = n_spec >= 2
+    else:
+        # The full-model fit pins a lobe down from one T_spec sample and its T_none
+        # flanks, but without any sample near the peak (theta_r <= theta_th2) a "lobe"
+        # is only a smooth trend over the flank, which a diffuse-model mismatch
+        # (interreflection, MC or sensor bias) imitates: not evidence of a lobe.
+        # And the fitted lobe must stand above the noise in two samples or more: with one,
+        # ps and roughness trade off along a valley whose edge (where the flanks start to
+        # object) gives a sharp-looking but arbitrary minimum.
+        seen_twice = out["lobe_second"] >= options.min_snr**2 * s2
+        enough = (n_spec >= _MIN_SPEC) & (use.sum(1) >= 3) & seen_twice
     identifiable = enough & spec_ok & np.all(np.isfinite(params), 1) \
         & (params[:, 3] > options.min_snr * sd[:, 3]) & (sd[:, 4] < 1.0)
     std_rough = np.where(np.isinf(sd[:, 4]), np.inf, rough * np.where(np.isinf(sd[:, 4]), 0.0, sd[:, 4]))
@@ -621,22 +674,25 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
         # Points that could not measure their own lobe share it with same-material
         # neighbours (`pool`); they count as interpolated, with finite std.
         pooled = pooled_specular(rows, pd, scan.vertices, options.model, k=options.pool_neighbours,
-                                 tau=options.pool_tau, min_snr=options.min_snr)
+                                 tau=options.pool_tau, min_snr=options.min_snr,
+                                 noise_floor=q / np.sqrt(12.0))
         use_pool = ~identifiable & pooled["identifiable"] & observed_any
         ps[use_pool], rough[use_pool] = pooled["ps"][use_pool], pooled["roughness"][use_pool]
         std_ps_pool, std_rough_pool = pooled["std_ps"][use_pool], pooled["std_roughness"][use_pool]
     else:
         use_pool = np.zeros(scan.n_points, bool)
     need_spec = ~identifiable & ~use_pool
-    if (~need_spec).any():
+    if identifiable.any():
+        # Filled from the points' own lobes only: a rare false pooled lobe (noise) would
+        # otherwise spread over a whole region without specular samples.
         logs = np.c_[np.log(np.maximum(ps, 1e-12)), np.log(rough)]
-        filled = window_fill(logs, ~need_spec, adjacency, options.window)
+        filled = window_fill(logs, identifiable, adjacency, options.window)
         ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
         status[filled.window] = INTERPOLATED
         status[filled.diffused] = UNRESOLVED
-    else:  # no specular reflection detected anywhere: report none, roughness undefined (0)
-        ps[:], rough[:] = 0.0, 0.0
-        status[:] = UNRESOLVED
+    else:  # no lobe measured anywhere: report none, roughness undefined (0)
+        ps[need_spec], rough[need_spec] = 0.0, 0.0
+        status[need_spec] = UNRESOLVED
     std_ps[need_spec] = np.inf
     std_rough[need_spec] = np.inf
     if use_pool.any():
@@ -672,6 +728,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
                         for k, v in asdict(options).items()},
             "quantisation_step": q, "seconds": timings,
             "points_with_observations": int(observed_any.sum()),
-            "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum())}
+            "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum()),
+            "points_with_pooled_lobe": int(use_pool.sum())}
     return Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, observed_any,
                     options.model, meta)

@@ -3,16 +3,20 @@
 A point with one or two weak highlight samples cannot pin down its own ps and
 roughness, but its neighbours of the same material saw the same lobe under
 other half-vector angles. For every point, `pooled_specular` fits one
-(ps, roughness) to the grey specular residuals `s = y - E pd / pi` of itself
-and its `k` nearest neighbours (within `radius`), each neighbour weighted by
-how alike its diffuse colour is, `exp(-|pd_k - pd_i|^2 / (2 tau^2))`, so a
-material boundary does not bleed. Each neighbour keeps its own pd (from the
-local fit); only the lobe is shared.
+(ps, roughness) to the grey radiance of itself and its `k` nearest neighbours
+(within `radius`) that have the same diffuse colour (`tau`), so a material
+boundary does not bleed.
+Only the lobe is shared: every neighbour keeps a diffuse albedo of its own,
+fitted with the lobe (held fixed instead, a neighbour's albedo from a fit that
+could not separate its lobe leaves a smooth trend that a broad lobe absorbs).
 
-The fit is variable projection: ps is linear given the roughness, so the
-roughness is chosen on a dense log grid, refined by a parabola through the best
-three grid values, and ps solved in closed form; standard deviations come from
-the 2 x 2 Gauss-Newton covariance at the solution.
+The fit is variable projection: given the roughness the model is linear in
+the neighbours' albedos and ps, which are eliminated in closed form (one
+2 x 2 block per neighbour), so the roughness is chosen on a dense log grid,
+refined by a parabola through the best three grid values and a few Newton
+steps; standard
+deviations come from the Gauss-Newton covariance of (ps, ln roughness) with
+the albedos profiled out.
 """
 
 from __future__ import annotations
@@ -25,70 +29,114 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import brdf
+from .classify import T_SPEC
 
 __all__ = ["pooled_specular"]
 
 _CHUNK = 2000
 
 
+def _quotient(num, den):
+    """num / den, 0 where den is 0 (no data): a guard that also holds in float32."""
+    return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 0.0)
+
+
 def _lobe(model, ln_rough, cos_i, cos_o, theta_r):
+    """Unit-ps specular lobe of every sample `(C, K, M)` at ln roughness `(C,)` or scalar."""
     _, spec_fn = brdf.MODELS[model]
+    ln_rough = jnp.broadcast_to(jnp.reshape(ln_rough, jnp.shape(ln_rough) + (1, 1)), cos_i.shape)
     return spec_fn(1.0, ln_rough, cos_i, cos_o, theta_r)
 
 
 @partial(jax.jit, static_argnames=("model",))
-def _fit_chunk(s, e, w, cos_i, cos_o, theta_r, model):
-    """One chunk: `s`, `e`, `w`, angles `(C, K*M)` -> ps, ln rough, std ps, std ln rough, cost, dof."""
-    lobe = jax.vmap(jax.vmap(jax.vmap(partial(_lobe, model), in_axes=(None, 0, 0, 0)),
-                             in_axes=(None, 0, 0, 0)), in_axes=(0, None, None, None))
-    logs = jnp.log(jnp.asarray(brdf.ROUGHNESS_GRID))
-    a = e[None] * lobe(logs, cos_i, cos_o, theta_r)  # (G, C, S)
-    saa = jnp.sum(w[None] * a * a, -1)
-    sas = jnp.sum(w[None] * a * s[None], -1)
-    ps_g = jnp.maximum(sas / jnp.maximum(saa, 1e-300), 0.0)
-    cost_g = jnp.sum(w[None] * (s[None] - ps_g[..., None] * a) ** 2, -1)  # (G, C)
+def _fit_chunk(y, e, w, cos_i, cos_o, theta_r, model):
+    """One chunk, each `(C, K, M)` (point, neighbour, sample): grey radiance `y`, irradiance
+    `e`, weights `w` (0: unused) and angles -> ps, ln roughness, std ps, std ln roughness `(C,)`.
+
+    Model per neighbour k: `y_kj = d_k a_kj + ps b_kj`, `a = e / pi`, `b = e lobe`."""
+    a = e / jnp.pi
+    saa, say = jnp.sum(w * a * a, -1), jnp.sum(w * a * y, -1)  # (C, K)
+    inv_aa = _quotient(1.0, saa)
+    base = jnp.sum(jnp.sum(w * y * y, -1) - say * say * inv_aa, -1)  # cost of albedos alone (C,)
+
+    def projected(b):
+        """(num, den) of ps = num / den with every d_k eliminated, `(C,)` each."""
+        sab = jnp.sum(w * a * b, -1)
+        num = jnp.sum(jnp.sum(w * b * y, -1) - sab * say * inv_aa, -1)
+        den = jnp.sum(jnp.sum(w * b * b, -1) - sab * sab * inv_aa, -1)
+        return num, den, sab
+
+    def cost_at(ln_r):
+        num, den, _ = projected(e * _lobe(model, ln_r, cos_i, cos_o, theta_r))
+        ps = jnp.maximum(_quotient(num, den), 0.0)
+        return base - 2.0 * ps * num + ps * ps * den
+
+    def grid_cost(_, ln_r):
+        return None, cost_at(ln_r)
+
+    logs = jnp.log(jnp.asarray(brdf.ROUGHNESS_GRID, dtype=e.dtype))
+    _, cost_g = jax.lax.scan(grid_cost, None, logs)  # (G, C), one grid value at a time
     k = jnp.clip(jnp.argmin(cost_g, 0), 1, len(brdf.ROUGHNESS_GRID) - 2)
     pick = lambda arr, off: jnp.take_along_axis(arr, (k + off)[None], 0)[0]  # noqa: E731
     c0, c1, c2 = pick(cost_g, -1), pick(cost_g, 0), pick(cost_g, 1)
-    step = logs[1] - logs[0]
     curv = c0 - 2 * c1 + c2
     shift = jnp.where(curv > 0, 0.5 * (c0 - c2) / jnp.where(curv > 0, curv, 1.0), 0.0)
-    ln_r = logs[k] + jnp.clip(shift, -1.0, 1.0) * step
+    spacing = logs[1] - logs[0]
+    ln_r = logs[k] + jnp.clip(shift, -1.0, 1.0) * spacing
 
-    def solve(ln_r_row, s_row, e_row, w_row, ci, co, th):
-        g = jax.vmap(partial(_lobe, model), in_axes=(None, 0, 0, 0))(ln_r_row, ci, co, th)
-        a_row = e_row * g
-        ps = jnp.maximum(jnp.sum(w_row * a_row * s_row) / jnp.maximum(jnp.sum(w_row * a_row * a_row), 1e-300), 0.0)
-        resid = s_row - ps * a_row
-        # Gauss-Newton covariance of (ps, ln roughness).
-        d_ln = jax.jacfwd(lambda lr: jax.vmap(partial(_lobe, model), in_axes=(None, 0, 0, 0))(lr, ci, co, th))(ln_r_row)
-        jac = jnp.stack([a_row, ps * e_row * d_ln], -1) * jnp.sqrt(w_row)[:, None]
-        jtj = jac.T @ jac
-        dof = jnp.sum(w_row > 0) - 2
-        s2 = jnp.sum(w_row * resid * resid) / jnp.maximum(dof, 1)
-        det = jtj[0, 0] * jtj[1, 1] - jtj[0, 1] ** 2
-        ok = (det > 1e-12 * jnp.maximum(jtj[0, 0] * jtj[1, 1], 1e-300)) & (dof > 0)
-        det = jnp.where(ok, det, 1.0)
-        var_ps = jnp.where(ok, s2 * jtj[1, 1] / det, jnp.inf)
-        var_lr = jnp.where(ok, s2 * jtj[0, 0] / det, jnp.inf)
-        return ps, jnp.sqrt(var_ps), jnp.sqrt(var_lr)
+    # Newton steps from the parabola's minimum (the rows are independent, so the gradient
+    # of the summed cost is every row's own derivative): the grid alone leaves errors
+    # comparable to the standard deviations.
+    grad = jax.grad(lambda lr: jnp.sum(cost_at(lr)))
 
-    ps, sd_ps, sd_lr = jax.vmap(solve)(ln_r, s, e, w, cos_i, cos_o, theta_r)
+    def newton(_, state):
+        lr, c = state
+        g, h = jax.jvp(grad, (lr,), (jnp.ones_like(lr),))
+        trial = lr - jnp.clip(jnp.where(h > 0, g / jnp.where(h > 0, h, 1.0), 0.0), -spacing, spacing)
+        c_t = cost_at(trial)
+        better = c_t < c
+        return jnp.where(better, trial, lr), jnp.where(better, c_t, c)
+
+    ln_r, _ = jax.lax.fori_loop(0, 4, newton, (ln_r, cost_at(ln_r)))
+
+    g, dg = jax.jvp(lambda lr: _lobe(model, lr, cos_i, cos_o, theta_r), (ln_r,), (jnp.ones_like(ln_r),))
+    b = e * g
+    num, den, sab = projected(b)
+    ps = jnp.maximum(_quotient(num, den), 0.0)
+    cost = jnp.maximum(base - 2.0 * ps * num + ps * ps * den, 0.0)
+    # Gauss-Newton matrix of (ps, ln roughness), the albedos profiled out (Schur complement).
+    d = ps[:, None, None] * e * dg
+    sad = jnp.sum(w * a * d, -1)
+    m_pp = den
+    m_pd = jnp.sum(jnp.sum(w * b * d, -1) - sab * sad * inv_aa, -1)
+    m_dd = jnp.sum(jnp.sum(w * d * d, -1) - sad * sad * inv_aa, -1)
+    dof = jnp.sum(w > 0, (-2, -1)) - jnp.sum(saa > 0, -1) - 2
+    s2 = cost / jnp.maximum(dof, 1)
+    det = m_pp * m_dd - m_pd * m_pd
+    ok = (det > 1e-12 * m_pp * m_dd) & (det > 0) & (dof > 0)
+    det = jnp.where(ok, det, 1.0)
+    sd_ps = jnp.where(ok, jnp.sqrt(jnp.maximum(s2 * m_dd / det, 0.0)), jnp.inf)
+    sd_lr = jnp.where(ok, jnp.sqrt(jnp.maximum(s2 * m_pp / det, 0.0)), jnp.inf)
     return ps, ln_r, sd_ps, sd_lr
 
 
 def pooled_specular(rows: dict, pd: np.ndarray, vertices: np.ndarray, model: str, k: int = 12,
-                    radius: float | None = None, tau: float = 0.05, min_snr: float = 3.0) -> dict:
+                    radius: float | None = None, tau: float = 0.05, min_snr: float = 3.0,
+                    noise_floor: float = 0.0) -> dict:
     """Shared-lobe fit of every point with its same-material neighbours.
 
     **Arguments:** `rows` from `local.prepare_rows`; `pd` `(N, 3)` each point's
     diffuse albedo (held fixed); `vertices` `(N, 3)`; `k` neighbours (self
     included); `radius` [m] (default: 4 x the median nearest-neighbour spacing);
-    `tau` albedo distance at which a neighbour's weight falls to `e^-1/2`.
+    `tau`: neighbours whose albedo differs by more than `1.18 tau`
+    (`exp(-d^2 / (2 tau^2)) < 1/2`) are another material and left out;
+    `noise_floor` absolute radiance noise floor of the weights, as in
+    `local.fit_rows`.
 
     **Returns:** dict of `(N,)` arrays: `ps`, `roughness`, `std_ps`,
-    `std_roughness`, and `identifiable` (ps `min_snr` std above 0, roughness
-    known to a factor e).
+    `std_roughness`, and `identifiable` (two or more T_spec samples among the
+    neighbours of weight >= 1/2, ps `min_snr` std above 0, roughness known to a
+    factor e).
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     n, m = np.shape(rows["use"])
@@ -99,26 +147,34 @@ def pooled_specular(rows: dict, pd: np.ndarray, vertices: np.ndarray, model: str
     dist, nbr = tree.query(vertices, k=min(k, n), distance_upper_bound=radius)
     present = np.isfinite(dist)
     nbr = np.where(present, nbr, np.arange(n)[:, None])
-    colour = np.exp(-np.sum((pd[nbr] - pd[:, None]) ** 2, -1) / (2 * tau**2)) * present  # (N, K)
+    # Same material or not: a neighbour counts fully or not at all (partial weights would
+    # count as whole degrees of freedom while adding little residual: too small a std).
+    same = (np.exp(-np.sum((pd[nbr] - pd[:, None]) ** 2, -1) / (2 * tau**2)) >= 0.5) & present  # (N, K)
 
     y, e, use = np.asarray(rows["y"]), np.asarray(rows["e"]), np.asarray(rows["use"])
-    grey_s = np.mean(y, -1) - e * np.mean(pd, -1)[:, None] / np.pi  # (N, M) per point
-    weight_obs = np.where(use, 1.0 / np.maximum(np.mean(y, -1), 1e-3 * y.max()) ** 2, 0.0)
+    grey = np.mean(y, -1)  # (N, M): the lobe is grey
+    # Method I's noise model (`local._noise_weights`): 1 % of the value, floored per point.
+    floor = np.maximum(noise_floor, 1e-4 * np.max(np.where(use, grey, 0.0), 1, keepdims=True))
+    weight_obs = np.where(use, 1.0 / ((0.01 * grey) ** 2 + floor**2), 0.0)
 
-    def gather(a):
-        return a[nbr].reshape(n, -1)
-
-    w = (colour[..., None] * weight_obs[nbr]).reshape(n, -1)
-    fields = [gather(grey_s), gather(e), w, gather(rows["cos_i"]), gather(rows["cos_o"]), gather(rows["theta_r"])]
+    w = same[..., None] * weight_obs[nbr]  # (N, K, M)
+    fields = [grey[nbr], np.where(use, e, 0.0)[nbr], w] + [np.asarray(rows[key])[nbr]
+                                                          for key in ("cos_i", "cos_o", "theta_r")]
     out = {key: np.empty(n) for key in ("ps", "ln_r", "sd_ps", "sd_lr")}
     for start in range(0, n, _CHUNK):  # fixed-size chunks: one compilation, bounded memory
         sl = slice(start, min(start + _CHUNK, n))
-        chunk = [np.pad(f[sl], [(0, _CHUNK - (sl.stop - sl.start)), (0, 0)]) for f in fields]
+        pad = [(0, _CHUNK - (sl.stop - sl.start)), (0, 0), (0, 0)]
+        chunk = [np.pad(f[sl], pad, constant_values=1.0 if i in (3, 4) else 0.0)  # cosines 1, the rest 0
+                 for i, f in enumerate(fields)]
         res = _fit_chunk(*[jnp.asarray(c) for c in chunk], model=model)
         for key, value in zip(("ps", "ln_r", "sd_ps", "sd_lr"), res):
             out[key][sl] = np.asarray(value)[: sl.stop - sl.start]
     rough = np.exp(out["ln_r"])
-    identifiable = (out["ps"] > min_snr * out["sd_ps"]) & (out["sd_lr"] < 1.0)
+    # As for a single point (`local.fit_rows`): a lobe needs samples near its peak, here
+    # two strong-specular (T_spec) ones among the same-material neighbours.
+    spec = use & (np.asarray(rows["classes"]) == T_SPEC)
+    evidence = np.sum(same * spec.sum(1)[nbr], 1) >= 2
+    identifiable = evidence & (out["ps"] > min_snr * out["sd_ps"]) & (out["sd_lr"] < 1.0)
     return {"ps": out["ps"], "roughness": rough, "std_ps": out["sd_ps"],
             "std_roughness": np.where(np.isfinite(out["sd_lr"]), rough * out["sd_lr"], np.inf),
             "identifiable": identifiable}

@@ -110,7 +110,12 @@ def test_convex_object_accuracy(convex_noisy):
     assert np.median(rel(est.pd, scan.true_pd)[measured]) <= 0.01
     assert np.median(rel(est.ps, scan.true_ps)[measured]) <= 0.05
     assert np.median(rel(est.roughness, scan.true_sigma)[measured]) <= 0.05
-    assert measured.sum() / est.pd_measured.sum() > 0.4
+    # Coverage is what the lights allow: (nearly) every point with a strong-specular
+    # sample is measured. (On this egg and rack only ~52 % of the points ever get one,
+    # even under all 60 lights: benchmarks/RESULTS_local.md.)
+    with_spec = (classify_scan(scan).classes == T_SPEC).any(1)
+    assert measured.sum() >= 0.98 * with_spec.sum()
+    assert not np.any(measured & ~with_spec)
 
 
 def test_uncertainty_is_calibrated(convex_noisy):
@@ -129,8 +134,13 @@ def test_outputs_are_finite_and_flagged(convex_noisy):
         assert np.all(np.isfinite(a))
     for a in (est.std_pd, est.std_ps, est.std_roughness):
         assert not np.any(np.isnan(a))
-    assert np.all(np.isinf(est.std_ps[~est.specular_identifiable]))
     assert np.all(est.status[~est.specular_identifiable] != MEASURED)
+    # A lobe not measured at the point is either pooled from its neighbours (finite
+    # std, interpolated) or filled from the window (std unknown).
+    pooled = ~est.specular_identifiable & np.isfinite(est.std_ps)
+    assert pooled.sum() == est.meta["points_with_pooled_lobe"] > 0
+    assert np.all(est.status[pooled] == INTERPOLATED)
+    assert np.all(np.isfinite(est.std_roughness[pooled]))
 
 
 @pytest.mark.parametrize("model", ["torrance-sparrow", "ward"])
@@ -141,6 +151,98 @@ def test_specular_below_noise_is_flagged(model):
     fit = fit_rows(rows, LocalOptions(model=model))
     assert not fit["identifiable"].any()
     assert all(np.all(np.isfinite(fit[k])) for k in ("pd", "ps", "roughness"))
+
+
+@pytest.mark.parametrize("m", [5, 8])
+def test_no_lobe_without_a_sample_near_the_peak(m):
+    """Model mismatch: diffuse points (ps = 0) seen only between 21 and 50 degrees, with
+    interreflected light (independent of the light's incidence, so relative to the direct
+    light it grows like 1 / cos_i) and noise shared by the RGB channels (Monte Carlo).
+    A broad "lobe" fits that trend well above its own row noise (the earlier rule took
+    12-24 % of these rows); without a T_spec sample it is not evidence of a lobe."""
+    rng = np.random.default_rng(21)
+    rows, pd, _, _ = synthetic_rows(rng, 400, m, "torrance-sparrow", ps=0.0, spec_samples=0)
+    normal_incidence = rows["e"] / np.maximum(rows["cos_i"], 1e-3)
+    y = rows["y"] + np.where(rows["use"], 0.2 * normal_incidence, 0.0)[..., None] * pd[:, None] / np.pi
+    rows["y"] = y * (1 + 0.01 * rng.standard_normal(y.shape[:2]))[..., None]
+    fit = fit_rows(rows)
+    assert not fit["identifiable"].any()
+    # One T_spec sample of a real lobe (and its flanks) is enough again, mostly.
+    rows, _, _, _ = synthetic_rows(np.random.default_rng(22), 400, m, "torrance-sparrow", spec_samples=1)
+    assert fit_rows(rows)["identifiable"].mean() > 0.8
+
+
+def test_fold_object_pd_rises_toward_the_fold():
+    """Object E (white paper, ps = 0) with interreflections on the scanner (paper Figs.
+    12-13): no sample is strong-specular, so no lobe is measured or pooled anywhere, and
+    the interreflected light goes to pd, which rises toward the fold (the spurious broad
+    lobes of the earlier rule took it instead: pd fell to 0.06 at the fold). Points on the
+    fold line, seen exactly edge-on, have no usable sample."""
+    from data_synth.objects import fold_coordinate
+    from jaxrefl.local import prepare_rows
+
+    scan, _ = make_scan("E", resolution=24, setup="diffuse", rig="scanner", lights=[24, 9, 0, 50, 59],
+                        global_illumination=True, samples=256, seed=0)
+    est = estimate_local(scan)
+    assert not est.specular_identifiable.any() and est.meta["points_with_pooled_lobe"] == 0
+    assert np.all(est.ps == 0) and np.all(est.status != MEASURED)
+    assert np.all(np.isfinite(est.pd)) and np.all((est.pd >= 0) & (est.pd <= 1))
+    rows = prepare_rows(scan)
+    assert not np.any(rows["use"] & (np.minimum(rows["cos_i"], rows["cos_o"]) <= brdf.COS_FLOOR))
+    d = np.abs(fold_coordinate(scan.vertices))
+    grey = est.pd.mean(1)
+    edges = [0.0, 0.02, 0.05, 0.1, 0.15, 0.21]
+    profile = [np.median(grey[(d >= a) & (d < b) & est.pd_measured]) for a, b in zip(edges[:-1], edges[1:])]
+    assert np.all(np.diff(profile) <= 0.005), profile  # falls away from the fold ...
+    assert profile[0] > 0.95 and profile[-1] < 0.9 and profile[-1] > 0.8  # ... to above the truth, 0.8
+
+
+def _direct_radiance(scan, pd, ps, sigma):
+    """Direct Torrance-Sparrow radiance `(N, K, 3)` of `scan`'s geometry (no shadows)."""
+    from jaxrefl.rig import observation_geometry
+
+    g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
+    full, _ = brdf.MODELS["torrance-sparrow"]
+    f = jax.vmap(jax.vmap(full, in_axes=(None, None, None, 0, 0, 0)))(
+        jnp.asarray(pd), jnp.asarray(ps), jnp.log(jnp.asarray(sigma)), g.cos_i, g.cos_o, g.theta_r)
+    e = scan.intensities()[None] * np.maximum(np.asarray(g.cos_i), 0) / np.asarray(g.light_distance) ** 2
+    return np.asarray(f) * e[..., None]
+
+
+def test_pooled_lobes_relight_a_sharp_highlight_better():
+    """A sharp glaze (sigma 0.02 rad) on the convex object, fitted under the selected lights
+    (1 % noise, 8 bits), relit under the 52 others: pooling lobes across same-material
+    neighbours (the default) beats window interpolation, which beats plain per-point fits
+    (benchmarks/RESULTS_local.md has the full-resolution numbers)."""
+    import dataclasses
+
+    from data_synth.scans import apply_sensor
+    from jaxrefl.local import prepare_rows
+
+    plan, _ = make_scan("V", resolution=32)
+    m = classify_scan(plan, use_observations=False)
+    selected = select_lights(m.diffuse_only, m.strong_specular, m.seen, weights=m.pixel_weight).selected
+    held = np.setdiff1d(np.arange(plan.n_lights), selected)
+    ps, sigma = np.full(plan.n_points, 0.4), np.full(plan.n_points, 0.02)
+    truth = _direct_radiance(plan, plan.true_pd, ps, sigma)
+    scan, _ = make_scan("V", resolution=32, lights=selected)
+    observed, level = apply_sensor(truth[:, selected], scan.valid, Sensor(noise=0.01, bits=8),
+                                   np.random.default_rng(3))
+    scan = dataclasses.replace(scan, radiance=np.where(scan.valid[..., None], observed, 0.0).astype(np.float32),
+                               saturation=level, true_ps=ps, true_sigma=sigma)
+    lit = m.measurable[:, held]
+
+    def relit_error(pd, ps_e, sigma_e):
+        pred = _direct_radiance(plan, pd, ps_e, np.maximum(sigma_e, 1e-6))[:, held]
+        return np.sqrt(np.sum((pred - truth[:, held])[lit] ** 2) / np.sum(truth[:, held][lit] ** 2))
+
+    plain = fit_rows(prepare_rows(scan))
+    pooled, window = estimate_local(scan), estimate_local(scan, LocalOptions(pool=False))
+    assert pooled.meta["points_with_pooled_lobe"] > 0
+    errors = [relit_error(plain["pd"], plain["ps"], plain["roughness"]),
+              relit_error(window.pd, window.ps, window.roughness),
+              relit_error(pooled.pd, pooled.ps, pooled.roughness)]
+    assert errors[2] < 0.85 * errors[1] < 0.85 * errors[0], errors
 
 
 @pytest.mark.parametrize("rough", [0.01, 0.5])
@@ -189,7 +291,7 @@ def test_point_seen_by_one_light_only():
 
 def test_interpolated_points_get_neighbour_values():
     scan, _ = make_scan("V", resolution=32, lights=[24, 25, 34, 35])
-    est = estimate_local(scan)
+    est = estimate_local(scan, LocalOptions(pool=False))
     interp = est.status == INTERPOLATED
     assert interp.any() and (est.status == MEASURED).any()
     assert np.all(np.isfinite(est.ps[interp])) and np.all(est.ps[interp] > 0)
@@ -301,6 +403,7 @@ def test_standard_deviations_match_autodiff_covariance(model):
     r = jax.vmap(residual)(params, data)
     jac = jax.vmap(jax.jacfwd(residual))(params, data)
     s2 = jnp.sum(r * r, 1) / (3 * rows["use"].sum(1) - 5)
+    s2 = jnp.maximum(s2, jnp.median(s2))  # no row's noise below the median row's
     var = s2[:, None] * jnp.diagonal(jnp.linalg.inv(jnp.einsum("nki,nkj->nij", jac, jac)), axis1=1, axis2=2)
     sd = np.sqrt(np.asarray(var))
     sd[:, 4] *= fit["roughness"]  # std of the roughness itself, from that of its log
