@@ -113,10 +113,11 @@ def _add_estimate(sub):
 
 def _add_estimate_options(p):
     """The estimator options, shared by `estimate` and `batch`."""
-    p.add_argument("--method", choices=["local", "radiosity", "photon"], default="local",
+    p.add_argument("--method", choices=["local", "radiosity", "photon", "auto"], default="local",
                    help="local: Method I, inverse local rendering (§3); radiosity: Method II, inverse "
                         "radiosity, diffuse interreflections removed (§4); photon: Method III, inverse "
-                        "photon mapping, diffuse and specular interreflections removed (§5, Ward model)")
+                        "photon mapping, diffuse and specular interreflections removed (§5, Ward model); "
+                        "auto: the cheapest of them predicted to meet --target-error, per region")
     p.add_argument("--model", choices=["torrance-sparrow", "ward"], default="torrance-sparrow")
     p.add_argument("--paper", action="store_true",
                    help="the paper's estimator: Eq. 5 single best diffuse sample, Eq. 7 from two samples")
@@ -140,6 +141,10 @@ def _add_estimate_options(p):
     g.add_argument("--damping", type=float, default=0.5, help="share of each iteration's change taken")
     g.add_argument("--retrace-ess", type=float, default=0.3,
                    help="re-trace the photons when the effective sample size falls below this fraction")
+    g = p.add_argument_group("auto (model only what the scene needs)")
+    g.add_argument("--target-error", type=float, default=0.05,
+                   help="relative pd and ps error to reach (median per region); Method III is a candidate "
+                        "with --model ward")
 
 
 def _add_batch(sub):
@@ -321,6 +326,18 @@ def estimate_to_file(scan_path, out, args) -> dict:
                                                   retrace_ess=args.retrace_ess, light_bin=args.light_bin,
                                                   min_snr=args.min_snr, window=args.window,
                                                   local=dataclasses.replace(options, model="ward")))
+    elif args.method == "auto":
+        from .auto import AutoOptions, estimate_auto
+        from .radiosity import RadiosityOptions
+
+        if not args.target_error > 0:
+            raise ValueError(f"target-error: must be > 0, got {args.target_error}")
+        photon = {"photons": args.photons, "iterations": args.iterations, "solver": args.photon_solver,
+                  "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
+                  "min_snr": args.min_snr, "window": args.window}
+        est = estimate_auto(scan, AutoOptions(
+            target_error=args.target_error, local=options, photon=photon,
+            radiosity=RadiosityOptions(rays=args.rays, light_bin=args.light_bin, outer=args.outer, paper=args.paper)))
     else:
         est = estimate_local(scan, options)
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
@@ -341,7 +358,7 @@ def estimate_summary(est, scan) -> dict:
                           for code, name in enumerate(("measured", "interpolated", "unresolved"))},
     }
     summary.update({k: est.meta[k] for k in ("outer_iterations", "form_factors", "light_configurations",
-                                             "image_difference", "best_iteration", "retraces")
+                                             "image_difference", "best_iteration", "retraces", "auto")
                     if k in est.meta})
     if scan.true_pd is not None:
         summary["errors"] = truth_errors(est, scan)

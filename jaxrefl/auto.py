@@ -1,0 +1,502 @@
+"""Method choice (`--method auto`): model only what a scene needs.
+
+Before anything global is fitted, every point gets these numbers:
+
+- `mass` `m_u = sum_v F_uv`: the share of its hemisphere that sees the object
+  itself (the row sums of Method II's form factors; the same Embree casts with
+  the same settings, so Method II later reads them from the cache);
+- `gain_diffuse` `g_u`, `gain_specular` `s_u`: the light its surroundings send it
+  after one bounce, over the direct light, under the scan's own lights and with
+  the reflectance of a Method I fit (`interreflection_ratios`): every form-factor
+  neighbour `v` lit by light `m` sends `F_uv pd_v E_vm` diffusely and
+  `pi F_uv f_s(v; light -> u) E_vm` through its specular lobe, so `s` grows with
+  the neighbours' ps and with how sharply their lobes aim the light at `u`
+  (form-factor mass x albedo for `g`);
+- `rel_std_pd`, `rel_std_ps`: Method I's relative standard deviations (scaled,
+  the error no choice of method removes; a fixed value where the point has no
+  estimate of its own).
+
+**Error model** (`ErrorModel`, calibrated by `benchmarks/auto_bench.py
+--calibrate` on Objects A-E; numbers in `benchmarks/RESULTS_auto.md`). Per point
+and method `k` the predicted relative error of pd (likewise ps) is
+
+    e_k = sqrt(noise^2 + bias_k^2),  bias_k = a_k g + b_k s  (Methods I, II)
+
+Method I leaves all the interreflected light in its fit (`a_I`, `b_I`), Method II
+removes the diffuse part but not what a specular lobe carries (`b_II`), Method III
+removes both at the cost of its Monte Carlo error, which grows with the light it
+estimates and falls with the photons each light configuration gets:
+`bias_III = (a_III + c k) g`, `k = sqrt(points / photons per configuration)`, plus
+a floor in quadrature.
+
+**Choice**: methods are ranked by cost (local < radiosity < photon). A point
+*needs a global method* where Method I's predicted error exceeds
+`max(target, (1 + tolerance) * best)`, `best` the lowest predicted error of any
+available method (a target below what any method reaches asks only for the best
+reachable, within the tolerance). Regions are the connected components (mesh
+edges) of that mask with at least `min_region` points, dilated by `rings`
+rings; per region the cheapest method whose predicted median errors meet the
+same rule is chosen. The most capable method any region needs is run on the
+whole object (light arrives from everywhere) and its result is used inside the
+regions only; everywhere else Method I's result stands (it is what was fitted
+to measure the scene, and where interreflection is negligible it is at least as
+accurate: `RESULTS_auto.md`).
+
+Method III (`jaxrefl.inverse_photon`) is imported only when needed; it fits the
+Ward model, so it is a candidate only with `local.model == 'ward'` and when the
+module is present. `meta['auto']` of the result reports the measured
+statistics, the predicted errors, every region and the reasons.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from .fill import vertex_adjacency
+from .formfactors import FormFactors, form_factors
+from .local import Estimate, LocalOptions, estimate_local, prepare_rows
+from .radiosity import RadiosityOptions, estimate_radiosity
+from .raycast import RayCaster
+
+__all__ = ["METHODS", "ErrorModel", "AutoOptions", "Measures", "Plan", "interreflection_ratios", "photon_k", "measure", "predict", "plan", "estimate_auto", "photon_available"]
+
+#: Candidate methods, cheapest first.
+METHODS = ("local", "radiosity", "photon")
+
+_PD_FLOOR = 0.05  # albedo below which a point's own relative quantities are not trusted
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """Coefficients of `e = sqrt(noise^2 + bias^2 [+ photon_noise^2])` per method
+    (`METHODS` order). `pd` and `ps` hold `(a, b)`: `bias = a g + b s` for Methods I and
+    II; Method III's `bias = (a + photon_mc * k) g` (its Monte Carlo error grows with the
+    interreflected light it estimates and with `k = sqrt(points / photons per light
+    configuration)`), `b` unused (0). `noise` is `noise_scale_pd` (`_ps`) times Method
+    I's relative standard deviation where the point has its own estimate, else
+    `unknown_pd` (`unknown_ps`: the error of a value filled from neighbours), at most 1.
+    Fitted by `benchmarks/auto_bench.py --calibrate` (`RESULTS_auto.md`)."""
+
+    # `python3 -m benchmarks.auto_bench --calibrate --repeats 0 --seed 0 --tilt 30`: Objects A-D, V,
+    # E (diffuse, glossy; Ward and Torrance-Sparrow), resolution 32; see RESULTS_auto.md.
+    pd: tuple = ((0.799, 2.513), (0.0, 2.385), (0.362, 0.0))
+    ps: tuple = ((0.0, 0.0), (0.0, 0.0), (0.727, 0.0))
+    photon_mc_pd: float = 0.441
+    photon_mc_ps: float = 2.628
+    noise_scale_pd: float = 0.543
+    noise_scale_ps: float = 0.344
+    unknown_pd: float = 0.132
+    unknown_ps: float = 0.03
+    photon_noise: float = 0.0074
+
+    def coefficients(self, quantity: str, method: str) -> tuple[float, float]:
+        return getattr(self, quantity)[METHODS.index(method)]
+
+    def noise(self, quantity: str, rel_std) -> np.ndarray:
+        """Error `(N,)` no method removes, from Method I's relative std (inf: no own estimate)."""
+        scale, unknown = getattr(self, f"noise_scale_{quantity}"), getattr(self, f"unknown_{quantity}")
+        known = np.isfinite(rel_std)
+        return np.minimum(np.where(known, scale * np.where(known, rel_std, 0.0), unknown), 1.0)
+
+    def bias(self, quantity: str, method: str, g, s, photon_k: float = 0.0) -> np.ndarray:
+        """Predicted relative bias `(N,)` of `method` from the gains `g`, `s` `(N,)`."""
+        a, b = self.coefficients(quantity, method)
+        if method == "photon":
+            return (a + getattr(self, f"photon_mc_{quantity}") * photon_k) * g
+        return a * g + b * s
+
+
+@dataclass(frozen=True)
+class AutoOptions:
+    """Settings of `estimate_auto` (module docstring). `target_error`: relative error
+    of pd and ps to reach (median per region); `tolerance`: a method within this
+    fraction of the best predicted error counts as good enough; `min_region` points
+    a region needs; `rings` it is dilated by; `methods` the candidates; `local`,
+    `radiosity` the options of Methods I and II (the form factors are cast with
+    `radiosity.rays` and `radiosity.seed`, Method I's options replace
+    `radiosity.local`); `photon` keyword arguments of `PhotonOptions` (Method III);
+    `model` the error model."""
+
+    target_error: float = 0.05
+    tolerance: float = 0.1
+    min_region: int = 8
+    rings: int = 2
+    methods: tuple = METHODS
+    local: LocalOptions = field(default_factory=LocalOptions)
+    radiosity: RadiosityOptions = field(default_factory=RadiosityOptions)
+    photon: dict = field(default_factory=dict)
+    model: ErrorModel = field(default_factory=ErrorModel)
+
+    def __post_init__(self):
+        if not self.target_error > 0:
+            raise ValueError(f"target_error: must be > 0, got {self.target_error}")
+        if not self.tolerance >= 0:
+            raise ValueError(f"tolerance: must be >= 0, got {self.tolerance}")
+        if self.rings < 0 or self.min_region < 1:
+            raise ValueError("rings: must be >= 0; min_region: must be >= 1")
+        unknown = set(self.methods) - set(METHODS)
+        if unknown or "local" not in self.methods:
+            raise ValueError(f"methods: a subset of {METHODS} including 'local', got {self.methods}")
+
+
+# -- measurements --------------------------------------------------------------------------
+
+
+@dataclass
+class Measures:
+    """Per-point measurements `(N,)`: `mass`, `gain_diffuse`, `gain_specular` (module
+    docstring); `rel_std_pd`, `rel_std_ps` Method I's relative standard deviations of
+    pd (mean over RGB) and ps, inf where the point has no estimate of its own; `local`
+    the Method I estimate they came from; `ff` the form factors; `seconds` per stage;
+    `photon_k` = sqrt(points / photons per light configuration) of Method III's settings."""
+
+    mass: np.ndarray
+    gain_diffuse: np.ndarray
+    gain_specular: np.ndarray
+    rel_std_pd: np.ndarray
+    rel_std_ps: np.ndarray
+    local: Estimate
+    ff: FormFactors
+    seconds: dict
+    photon_k: float = 0.0
+
+    def statistics(self) -> dict:
+        """Median, 90th percentile and maximum of each measurement (relative stds over the
+        points with their own estimate, whose share is `own`)."""
+        out = {}
+        for name in ("mass", "gain_diffuse", "gain_specular", "rel_std_pd", "rel_std_ps"):
+            v = getattr(self, name)
+            v = v[np.isfinite(v)]
+            out[name] = ({"median": float(np.median(v)), "p90": float(np.percentile(v, 90)), "max": float(v.max())}
+                         if v.size else {"median": None, "p90": None, "max": None})
+            if name.startswith("rel_std"):
+                out[name]["own"] = float(v.size / max(len(getattr(self, name)), 1))
+        out["photon_k"] = self.photon_k
+        return out
+
+
+def photon_k(scan, photon: dict) -> float:
+    """`sqrt(N / photons per light configuration)` for Method III's settings `photon`
+    (`PhotonOptions` keywords; per-point lights are binned into configurations as
+    Method III does): the relative Monte Carlo error of a gather, up to a constant."""
+    from .radiosity import light_configs
+
+    photons, light_bin = photon.get("photons", 1_000_000), photon.get("light_bin", 0.1)
+    configs = len(light_configs(scan.light_pos, scan.n_points, light_bin).positions)
+    per_config = max(1000, round(photons * scan.n_lights / configs))
+    return float(np.sqrt(scan.n_points / per_config))
+
+
+def _relative_std(std, value, own):
+    """`std / value` `(N,)` where the point has its own finite estimate, inf elsewhere."""
+    ok = own & np.isfinite(std) & (value > 0)
+    return np.where(ok, np.asarray(std) / np.where(ok, value, 1.0), np.inf)
+
+
+def interreflection_ratios(scan, est: Estimate, ff: FormFactors, rows: dict) -> tuple[np.ndarray, np.ndarray]:
+    """First-bounce interreflected over direct irradiance per point, `(g, s)` each `(N,)`,
+    under the scan's own lights and with the reflectance `est` (Method I's fit).
+
+    For every form-factor entry `(u, v)` and light `m`, patch `v` lit by `E_vm`
+    (`rows['e']`, its direct irradiance in observation `m`, 0 where shadowed) sends
+    `u` the irradiance `F_uv pd_v E_vm` diffusely and `pi F_uv f_s(v; l_vm -> u) E_vm`
+    through its specular lobe (`est`'s model, evaluated towards `u`). Summed over `v`
+    and over the samples pd is fitted from (the diffuse-only ones where a point has any,
+    else all its samples), each over the direct irradiance of the same samples."""
+    from . import brdf
+    from .classify import T_DIFF
+
+    use, e = rows["use"], rows["e"]
+    sample = np.where((use & (rows["classes"] == T_DIFF)).any(1)[:, None], use & (rows["classes"] == T_DIFF), use)
+    u, v, f = ff.rows.astype(np.int64), ff.cols.astype(np.int64), ff.values
+    pd = np.clip(est.pd.mean(axis=1), 0.0, 1.0)
+    lobe = brdf.MODELS[est.model][1]
+    has_lobe = (est.ps[v] > 0) & (est.roughness[v] > 0)
+    ln_rough = np.log(np.where(has_lobe, est.roughness[v], 1.0))
+    to_u = scan.vertices[u] - scan.vertices[v]
+    to_u /= np.maximum(np.linalg.norm(to_u, axis=1, keepdims=True), 1e-300)
+    n_v = scan.normals[v]
+    cos_o = np.einsum("kj,kj->k", n_v, to_u)
+    lights = scan.light_positions()
+    diffuse, specular = np.zeros(scan.n_points), np.zeros(scan.n_points)
+    direct = np.where(sample, e, 0.0).sum(axis=1)
+    for m in range(scan.n_lights):  # a loop over lights, each a batch of form-factor entries
+        w = sample[:, m]
+        if not w.any():
+            continue
+        to_l = lights[v, m] - scan.vertices[v]
+        to_l /= np.maximum(np.linalg.norm(to_l, axis=1, keepdims=True), 1e-300)
+        cos_i = np.einsum("kj,kj->k", n_v, to_l)
+        theta_r = np.asarray(brdf.half_angle(n_v, to_l, to_u))
+        f_s = np.asarray(lobe(np.where(has_lobe, est.ps[v], 0.0), ln_rough, cos_i, cos_o, theta_r))
+        diffuse += w * np.bincount(u, f * pd[v] * e[v, m], minlength=scan.n_points)
+        specular += w * np.bincount(u, np.pi * f * f_s * e[v, m], minlength=scan.n_points)
+    ok = direct > 0
+    ratio = lambda x: np.where(ok, x / np.where(ok, direct, 1.0), 0.0)  # noqa: E731
+    return ratio(diffuse), ratio(specular)
+
+
+def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None = None) -> Measures:
+    """Form factors (cached, the same casts as Method II) and a Method I fit, and from
+    them the per-point measurements of the module docstring."""
+    caster = caster or RayCaster(scan.vertices, scan.faces)
+    t0 = time.perf_counter()
+    ff = form_factors(scan.vertices, scan.faces, scan.normals, rays=options.radiosity.rays,
+                      seed=options.radiosity.seed, caster=caster)
+    t_ff = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    local = estimate_local(scan, options.local, caster)
+    t_local = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    rows = prepare_rows(scan, options.local.thresholds, caster)
+    g, s = interreflection_ratios(scan, local, ff, rows)
+    rel_pd = _relative_std(local.std_pd.mean(axis=1), np.maximum(local.pd.mean(axis=1), 0.01), local.pd_measured)
+    rel_ps = _relative_std(local.std_ps, local.ps, local.specular_identifiable)
+    k = photon_k(scan, options.photon) if "photon" in options.methods else 0.0
+    seconds = {"form_factors": t_ff, "local": t_local, "measures": time.perf_counter() - t0}
+    return Measures(ff.row_sums, g, s, rel_pd, rel_ps, local, ff, seconds, k)
+
+
+def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHODS) -> dict:
+    """Predicted relative errors per point: `{method: {"pd": (N,), "ps": (N,)}}`."""
+    out = {}
+    for k in methods:
+        out[k] = {}
+        for q in ("pd", "ps"):
+            noise = model.noise(q, getattr(measures, f"rel_std_{q}"))
+            bias = model.bias(q, k, measures.gain_diffuse, measures.gain_specular, measures.photon_k)
+            floor = model.photon_noise if k == "photon" else 0.0
+            out[k][q] = np.sqrt(noise**2 + bias**2 + floor**2)
+    return out
+
+
+# -- the plan -------------------------------------------------------------------------------
+
+
+@dataclass
+class Plan:
+    """`method` `(N,)` index into `METHODS` used at each point; `run` the global method
+    to run (None: Method I alone); `regions` one dict per region; `needs_global` `(N,)`
+    the mask before regions were formed; `predicted` per-method scene medians and
+    those of the plan."""
+
+    method: np.ndarray
+    run: str | None
+    regions: list
+    needs_global: np.ndarray
+    predicted: dict
+
+
+def _meets(errors: dict, candidates, target: float, tolerance: float, reduce=lambda e: e):
+    """For each candidate: its (reduced) pd and ps errors meet `max(target, (1 + tol) best)`."""
+    ok = {}
+    for q in ("pd", "ps"):
+        vals = {k: reduce(errors[k][q]) for k in candidates}
+        best = np.minimum.reduce([np.asarray(v) for v in vals.values()])
+        limit = np.maximum(target, (1.0 + tolerance) * best)
+        for k in candidates:
+            ok[k] = ok.get(k, True) & (np.asarray(vals[k]) <= limit)
+    return ok
+
+
+def _median(e):
+    return float(np.median(e))
+
+
+def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), available=None) -> Plan:
+    """Regions and a method per region (module docstring); `available` the runnable
+    candidates (default `options.methods`)."""
+    available = [k for k in METHODS if k in (available if available is not None else options.methods)]
+    errors = predict(measures, options.model, available)
+    n = scan.n_points
+    needs = ~_meets(errors, available, options.target_error, options.tolerance)["local"]
+    adjacency = vertex_adjacency(scan.faces, n)
+
+    def components(mask):
+        sub = adjacency[mask][:, mask]
+        _, labels = connected_components(sub, directed=False)
+        out = np.full(n, -1)
+        out[mask] = labels
+        return out
+
+    seeds = np.zeros(n, bool)
+    labels = components(needs)
+    if needs.any():
+        sizes = np.bincount(labels[needs])
+        seeds = needs & (sizes[np.maximum(labels, 0)] >= options.min_region)
+    grown = seeds.copy()
+    step = adjacency + sp.identity(n, format="csr")
+    for _ in range(options.rings):
+        grown = (step @ grown.astype(np.float64)) > 0
+    labels = components(grown)
+
+    method = np.zeros(n, np.int64)
+    regions, wanted = [], []
+    for r in range(labels.max() + 1):
+        pts = labels == r
+        core = pts & seeds  # the ring is a margin, not evidence: decide on the points that needed it
+        ok = _meets(errors, available, options.target_error, options.tolerance,
+                    reduce=lambda e, core=core: _median(e[core]))
+        choice = next((k for k in available if ok[k]), available[-1])
+        wanted.append(choice)
+        regions.append({
+            "region": r, "points": int(pts.sum()), "seed_points": int((pts & seeds).sum()),
+            "needed": choice,
+            "predicted": {k: {q: _median(errors[k][q][core]) for q in ("pd", "ps")} for k in available},
+            "statistics": {name: float(np.median(getattr(measures, name)[core]))
+                           for name in ("mass", "gain_diffuse", "gain_specular")},
+        })
+    run = max(wanted, key=METHODS.index) if wanted else None
+    if run == "local":
+        run = None
+    for reg, choice in zip(regions, wanted):
+        # The most capable method any region needs runs on the whole object anyway: regions that
+        # would make do with less take its result (no extra cost), unless that is Method I.
+        used = choice if choice == "local" or run is None else run
+        reg["method"] = used
+        method[labels == reg["region"]] = METHODS.index(used)
+
+    def plan_errors(q):
+        e = np.choose(method, [errors.get(k, {q: np.zeros(n)})[q] for k in METHODS])
+        return _median(e)
+
+    predicted = {k: {q: _median(errors[k][q]) for q in ("pd", "ps")} for k in available}
+    predicted["plan"] = {q: plan_errors(q) for q in ("pd", "ps")}
+    return Plan(method, run, regions, needs, predicted)
+
+
+# -- running it ------------------------------------------------------------------------------
+
+
+def photon_available(model: str) -> tuple[bool, str]:
+    """Whether Method III can run for results in `model`, and why not."""
+    if model != "ward":
+        return False, "Method III fits the Ward model (use --model ward)"
+    try:
+        from . import inverse_photon  # noqa: F401
+    except ImportError as exc:
+        return False, f"Method III is not installed ({exc})"
+    return True, ""
+
+
+def _run(method: str, scan, options: AutoOptions, caster) -> Estimate:
+    if method == "radiosity":
+        return estimate_radiosity(scan, dataclasses.replace(options.radiosity, local=options.local), caster)
+    if method == "photon":
+        from .inverse_photon import PhotonOptions, estimate_photon
+
+        return estimate_photon(scan, PhotonOptions(**{"local": options.local, **options.photon}), caster)
+    raise ValueError(f"method: unknown {method!r}")
+
+
+def _merge(local: Estimate, other: Estimate | None, use_other: np.ndarray) -> Estimate:
+    if other is None or not use_other.any():
+        return dataclasses.replace(local, meta=dict(local.meta))
+    pick = lambda a, b: np.where(use_other.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)  # noqa: E731
+    fields = ("pd", "ps", "roughness", "status", "std_pd", "std_ps", "std_roughness", "specular_identifiable",
+              "pd_measured")
+    return dataclasses.replace(local, **{f: pick(getattr(local, f), getattr(other, f)) for f in fields},
+                               meta=dict(local.meta))
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    return x
+
+
+def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None = None) -> Estimate:
+    """Measure, plan, run the global method the plan needs and merge (module docstring).
+
+    **Returns:** `Estimate` in `options.local.model` with `meta['method'] == 'auto'`
+    and `meta['auto']`: target, the choice and why, measured statistics, predicted
+    errors (per method and of the plan, scene medians), regions, candidates left
+    out and why, and the meta of every method run (`meta['runs']`).
+    """
+    if scan.radiance is None:
+        raise ValueError("radiance: the scan has no observations to estimate from")
+    t_start = time.perf_counter()
+    caster = caster or RayCaster(scan.vertices, scan.faces)
+    measures = measure(scan, options, caster)
+    seconds = dict(measures.seconds)
+
+    t0 = time.perf_counter()
+    available, unavailable = [], {}
+    for k in options.methods:
+        ok, why = photon_available(options.local.model) if k == "photon" else (True, "")
+        (available.append(k) if ok else unavailable.__setitem__(k, why))
+    p = plan(scan, measures, options, available)
+    seconds["plan"] = time.perf_counter() - t0
+
+    other = None
+    if p.run is not None:
+        t0 = time.perf_counter()
+        other = _run(p.run, scan, options, caster)
+        seconds[p.run] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    use_other = p.method > 0
+    est = _merge(measures.local, other, use_other)
+    seconds["merge"] = time.perf_counter() - t0
+    seconds["total"] = time.perf_counter() - t_start
+
+    counts = {k: int(np.sum(p.method == i)) for i, k in enumerate(METHODS) if np.any(p.method == i)}
+    t = options.target_error
+    if p.run is None:
+        choice = "local"
+        if not p.needs_global.any():
+            reason = (f"Method I's predicted error meets the target {t:g} (or is within {options.tolerance:.0%} of "
+                      "the best method's) at every point")
+        else:
+            reason = (f"Method I misses the target {t:g} at {int(p.needs_global.sum())} point(s), in no region of "
+                      f"{options.min_region} or more points whose median needs a global method")
+    else:
+        choice = p.run if counts.get("local", 0) == 0 else f"local+{p.run}"
+        needing = [r for r in p.regions if r["needed"] == p.run]
+        short = [r for r in needing if max(r["predicted"][p.run].values()) > t]
+        reason = (f"{len(p.regions)} region(s), {int(use_other.sum())} of {scan.n_points} points, where Method I's "
+                  f"predicted error misses the target {t:g}; {p.run} is the cheapest method predicted to meet it "
+                  "there")
+        if short:
+            reason += (f" (in {len(short)} of them no candidate is predicted to meet it: {p.run} is the cheapest "
+                       f"within {options.tolerance:.0%} of the best prediction)")
+    notes = []
+    for k, why in unavailable.items():
+        notes.append(f"{k} not available: {why}")
+    best_unavailable = {}
+    if unavailable:  # would a missing method have done better? (its prediction, for the report)
+        errs = predict(measures, options.model, tuple(unavailable))
+        best_unavailable = {k: {q: _median(v[q]) for q in ("pd", "ps")} for k, v in errs.items()}
+    auto = {
+        "target_error": options.target_error, "tolerance": options.tolerance,
+        "choice": choice, "reason": reason, "global_method": p.run, "points_by_method": counts,
+        "candidates": available, "unavailable": unavailable, "notes": notes,
+        "statistics": measures.statistics(),
+        "predicted": p.predicted, "predicted_unavailable": best_unavailable,
+        "needs_global_points": int(p.needs_global.sum()),
+        "regions": p.regions, "rings": options.rings, "min_region": options.min_region,
+        "error_model": asdict(options.model),
+        "form_factors": {"rays": measures.ff.rays, "nonzeros": int(len(measures.ff.values)),
+                         "mean_row_sum": float(measures.mass.mean())},
+    }
+    runs = {"local": measures.local.meta}
+    if other is not None:
+        runs[p.run] = other.meta
+    est.meta = _jsonable({
+        "method": "auto", "model": options.local.model, "auto": auto, "seconds": seconds, "runs": runs,
+        "options": {"target_error": options.target_error, "tolerance": options.tolerance, "rings": options.rings,
+                    "min_region": options.min_region, "methods": list(options.methods),
+                    "photon": dict(options.photon)},
+        "points_with_observations": measures.local.meta.get("points_with_observations"),
+    })
+    return est

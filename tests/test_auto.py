@@ -1,0 +1,209 @@
+"""`--method auto`: measurements, the error model, regions, the choice on real scans, the CLI."""
+
+import dataclasses
+import json
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from data_synth.scans import Sensor, make_scan
+from jaxrefl import auto, formfactors
+from jaxrefl.local import Estimate, estimate_local, prepare_rows
+from jaxrefl.radiosity import RadiosityOptions, direct_irradiance
+from jaxrefl.raycast import RayCaster
+from tests.helpers import grid_plane
+
+
+@pytest.fixture
+def fresh_cache(tmp_path, monkeypatch):
+    """Form factors cast afresh: an empty disk cache and an empty memory cache."""
+    monkeypatch.setenv("JAXREFL_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(formfactors, "_MEMORY", {})
+
+
+@pytest.fixture(scope="module")
+def fold_scan():
+    """White-paper Object E (ps 0) under four lights, path-traced interreflections."""
+    scan, _ = make_scan("E", resolution=32, setup="diffuse", lights=[23, 26, 33, 36], global_illumination=True,
+                        samples=32, sensor=Sensor(noise=0.01), seed=1)
+    return scan
+
+
+@pytest.fixture(scope="module")
+def convex_scan():
+    """The convex vase: nothing on it sees anything else of it. (Sizes chosen so that the
+    fold and the vase share one compilation of Method I: 4 lights, <= 1000 points.)"""
+    scan, _ = make_scan("V", resolution=16, lights=[0, 15, 30, 45], sensor=Sensor(noise=0.01))
+    return scan
+
+
+def test_measures_see_the_fold_and_not_the_convex_vase(fold_scan, convex_scan, fresh_cache):
+    options = auto.AutoOptions(radiosity=RadiosityOptions(rays=64))
+    vase = auto.measure(convex_scan, options)
+    assert vase.mass.max() < 0.02 and vase.gain_diffuse.max() < 0.02
+    fold = auto.measure(fold_scan, options)
+    # Each plate sees the other: half the hemisphere at the fold line, less far from it.
+    x = np.abs(fold_scan.vertices[:, 1])  # distance from the fold plane y = 0 (untilted E)
+    near, far = x < 0.02, x > 0.1
+    assert fold.mass[near].mean() > 0.3 and fold.mass[far].mean() < fold.mass[near].mean()
+    # white paper: the other plate sends a good share of the direct light back, most at the fold
+    assert fold.gain_diffuse[near].mean() > 0.2 and fold.gain_diffuse[far].mean() < fold.gain_diffuse[near].mean()
+    assert np.all(fold.gain_specular >= 0) and np.all(np.isfinite(fold.gain_specular))
+    for v in (fold.rel_std_pd, fold.rel_std_ps):
+        assert np.all(v[np.isfinite(v)] >= 0) and not np.any(np.isnan(v))
+    assert np.isfinite(fold.rel_std_pd).mean() > 0.9  # pd: nearly every point has its own
+
+
+def test_interreflection_ratios_against_the_first_radiosity_bounce(fresh_cache):
+    """One light: `g` is Method II's first interreflection bounce `F (pd E)` over `E` (direct
+    irradiance by `radiosity.direct_irradiance`, shadows by Embree); `s` is linear in ps,
+    0 without a lobe, and larger for a sharper lobe of the same albedo (Ward)."""
+    scan, _ = make_scan("E", resolution=24, setup="glossy", lights=[26], model="ward")
+    caster = RayCaster(scan.vertices, scan.faces)
+    ff = formfactors.form_factors(scan.vertices, scan.faces, scan.normals, rays=64, caster=caster)
+    rows = prepare_rows(scan, caster=caster)
+    rng = np.random.default_rng(0)
+    pd = rng.uniform(0.2, 0.9, (scan.n_points, 3))
+
+    def est(ps, alpha):
+        n = scan.n_points
+        return Estimate(pd, np.full(n, ps), np.full(n, alpha), np.zeros(n, np.int8), pd * 0, np.zeros(n),
+                        np.zeros(n), np.ones(n, bool), np.ones(n, bool), "ward")
+
+    g, s0 = auto.interreflection_ratios(scan, est(0.0, 0.1), ff, rows)
+    e = direct_irradiance(caster, scan.normals, scan.light_positions()[0, :1], scan.intensities())[:, 0]
+    lit = rows["use"][:, 0]
+    assert lit.mean() > 0.5 and np.allclose(e[lit], rows["e"][lit, 0])
+    expected = (ff.matrix @ (pd.mean(1) * e)) / np.where(lit, e, 1.0)
+    np.testing.assert_allclose(g[lit], expected[lit], rtol=1e-9)
+    assert np.all(g[~lit] == 0) and np.all(s0 == 0)
+    _, s1 = auto.interreflection_ratios(scan, est(0.1, 0.1), ff, rows)
+    _, s2 = auto.interreflection_ratios(scan, est(0.2, 0.1), ff, rows)
+    _, sharp = auto.interreflection_ratios(scan, est(0.1, 0.03), ff, rows)
+    np.testing.assert_allclose(s2, 2 * s1, rtol=1e-9)
+    assert s1.max() > 0 and sharp.max() > 2 * s1.max()
+
+
+def _fake_measures(n, gain):
+    z = np.zeros(n)
+    return auto.Measures(mass=gain, gain_diffuse=gain, gain_specular=z, rel_std_pd=z + 0.01, rel_std_ps=z + 0.01,
+                         local=None, ff=None, seconds={})
+
+
+def test_regions_are_components_dilated_by_rings_and_small_ones_are_dropped():
+    v, f = grid_plane(1.0, 21)  # 21 x 21 vertices
+    ij = np.stack(np.unravel_index(np.arange(len(v)), (21, 21)), 1)
+    gain = np.zeros(len(v))
+    block = (np.abs(ij[:, 0] - 5) <= 1) & (np.abs(ij[:, 1] - 5) <= 1)  # 3 x 3 = 9 points
+    lone = (ij[:, 0] == 15) & (ij[:, 1] == 15)  # one isolated point
+    gain[block | lone] = 0.3
+    scan = SimpleNamespace(faces=f, n_points=len(v))
+    options = auto.AutoOptions(target_error=0.05, min_region=8, rings=1, methods=("local", "radiosity"))
+    p = auto.plan(scan, _fake_measures(len(v), gain), options)
+    assert p.run == "radiosity" and len(p.regions) == 1
+    region = p.method == auto.METHODS.index("radiosity")
+    # one ring of the grid's triangulation around the 3 x 3 block; the lone point stays local
+    assert region[block].all() and not region[lone] and 9 < region.sum() <= 25
+    assert p.regions[0]["seed_points"] == 9 and p.regions[0]["points"] == region.sum()
+    assert p.needs_global[lone]
+    # two rings grow it further; zero rings keep exactly the block
+    wider = auto.plan(scan, _fake_measures(len(v), gain), dataclasses.replace(options, rings=2))
+    assert (wider.method > 0).sum() > region.sum()
+    exact = auto.plan(scan, _fake_measures(len(v), gain), dataclasses.replace(options, rings=0))
+    assert (exact.method > 0).sum() == 9
+
+
+def test_target_decides_and_an_unreachable_target_takes_the_cheapest_near_the_best():
+    v, f = grid_plane(1.0, 11)
+    scan = SimpleNamespace(faces=f, n_points=len(v))
+    gain = np.full(len(v), 0.1)
+    m = _fake_measures(len(v), gain)
+    model = auto.ErrorModel()
+    e_local = float(auto.predict(m, model, ("local",))["local"]["pd"][0])
+    e_rad = float(auto.predict(m, model, ("radiosity",))["radiosity"]["pd"][0])
+    assert e_rad < e_local
+    loose = auto.plan(scan, m, auto.AutoOptions(target_error=1.05 * e_local, methods=("local", "radiosity")))
+    assert loose.run is None and np.all(loose.method == 0)
+    tight = auto.plan(scan, m, auto.AutoOptions(target_error=0.5 * (e_local + e_rad), methods=("local", "radiosity")))
+    assert tight.run == "radiosity" and np.all(tight.method == 1)
+    # no method reaches 1e-6: the cheapest within the tolerance of the best predicted error is used
+    best = auto.plan(scan, m, auto.AutoOptions(target_error=1e-6, methods=("local", "radiosity")))
+    assert best.run == "radiosity"
+    assert best.predicted["plan"]["pd"] == pytest.approx(e_rad)
+
+
+def test_convex_scene_is_left_to_method_one(convex_scan, fresh_cache):
+    options = auto.AutoOptions(radiosity=RadiosityOptions(rays=64))
+    est = auto.estimate_auto(convex_scan, options)
+    local = estimate_local(convex_scan, options.local)
+    a = est.meta["auto"]
+    assert est.meta["method"] == "auto" and a["choice"] == "local" and a["global_method"] is None
+    assert a["regions"] == [] and a["points_by_method"] == {"local": convex_scan.n_points}
+    np.testing.assert_array_equal(est.pd, local.pd)
+    np.testing.assert_array_equal(est.ps, local.ps)
+    assert a["predicted"]["plan"]["pd"] <= options.target_error
+    assert set(a["statistics"]) == {"mass", "gain_diffuse", "gain_specular", "rel_std_pd", "rel_std_ps", "photon_k"}
+    json.dumps(est.meta)  # the meta is plain JSON
+
+
+def test_fold_needs_inverse_radiosity_and_the_form_factors_are_cast_once(fold_scan, fresh_cache, monkeypatch):
+    casts = []
+    real = formfactors._cast
+    monkeypatch.setattr(formfactors, "_cast", lambda *a, **k: casts.append(1) or real(*a, **k))
+    options = auto.AutoOptions(target_error=0.05, radiosity=RadiosityOptions(rays=64))
+    caster = RayCaster(fold_scan.vertices, fold_scan.faces)
+    est = auto.estimate_auto(fold_scan, options, caster)
+    a = est.meta["auto"]
+    assert a["global_method"] == "radiosity" and "radiosity" in a["choice"]
+    assert "photon" in a["unavailable"] and "Ward" in a["unavailable"]["photon"]
+    assert "radiosity" in est.meta["runs"] and est.meta["seconds"]["radiosity"] > 0
+    # all the casts happened while measuring: Method II read the form factors from the cache
+    n_chunks = -(-fold_scan.n_points // (formfactors._RAYS_PER_TASK // 64))
+    assert len(casts) == n_chunks
+    # interreflection removed where it matters: against Method I near the fold
+    local = estimate_local(fold_scan, options.local, caster)
+    near = np.abs(fold_scan.vertices[:, 1]) < 0.03
+    err = lambda e: (np.abs(e.pd - fold_scan.true_pd) / fold_scan.true_pd).mean(1)  # noqa: E731
+    assert err(est)[near].mean() < 0.5 * err(local)[near].mean()
+    for k in ("pd", "ps", "roughness", "std_pd", "std_ps", "std_roughness"):
+        assert not np.any(np.isnan(getattr(est, k)))
+    region_points = sum(r["points"] for r in a["regions"])
+    assert region_points == a["points_by_method"].get("radiosity", 0) > 0
+    assert all(r["predicted"]["radiosity"]["pd"] < r["predicted"]["local"]["pd"] for r in a["regions"])
+
+
+def test_photon_is_a_candidate_only_for_ward_and_when_installed(monkeypatch):
+    ok, why = auto.photon_available("torrance-sparrow")
+    assert not ok and "Ward" in why
+    monkeypatch.setitem(sys.modules, "jaxrefl.inverse_photon", None)  # Method III absent
+    ok, why = auto.photon_available("ward")
+    assert not ok and "not installed" in why
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="target_error"):
+        auto.AutoOptions(target_error=0.0)
+    with pytest.raises(ValueError, match="methods"):
+        auto.AutoOptions(methods=("radiosity",))
+
+
+def test_cli_estimate_auto(tmp_path):
+    from tests.test_cli import assert_one_line_error, jaxrefl
+
+    scan = tmp_path / "v.npz"
+    assert jaxrefl("synth", "V", "--resolution", 16, "--lights", "0,15,30,45", "--noise", 0.01,
+                   "--out", scan).returncode == 0
+    out = tmp_path / "auto.npz"
+    r = jaxrefl("estimate", scan, "--method", "auto", "--target-error", 0.05, "--rays", 64, "--out", out, "--json")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["method"] == "auto" and summary["auto"]["choice"] == "local"
+    assert summary["auto"]["target_error"] == 0.05 and "predicted" in summary["auto"]
+    with np.load(out) as z:
+        meta = json.loads(str(z["meta"]))
+        assert meta["method"] == "auto" and meta["auto"]["choice"] == "local" and np.all(np.isfinite(z["pd"]))
+    assert_one_line_error(jaxrefl("estimate", scan, "--method", "auto", "--target-error", -1,
+                                  "--out", tmp_path / "x.npz"), "target")
+    assert not (tmp_path / "x.npz").exists()
