@@ -675,7 +675,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
         # neighbours (`pool`); they count as interpolated, with finite std.
         pooled = pooled_specular(rows, pd, scan.vertices, options.model, k=options.pool_neighbours,
                                  tau=options.pool_tau, min_snr=options.min_snr,
-                                 noise_floor=q / np.sqrt(12.0))
+                                 noise_floor=q / np.sqrt(12.0), where=~identifiable & observed_any)
         use_pool = ~identifiable & pooled["identifiable"] & observed_any
         ps[use_pool], rough[use_pool] = pooled["ps"][use_pool], pooled["roughness"][use_pool]
         std_ps_pool, std_rough_pool = pooled["std_ps"][use_pool], pooled["std_roughness"][use_pool]

@@ -12,11 +12,12 @@ could not separate its lobe leaves a smooth trend that a broad lobe absorbs).
 
 The fit is variable projection: given the roughness the model is linear in
 the neighbours' albedos and ps, which are eliminated in closed form (one
-2 x 2 block per neighbour), so the roughness is chosen on a dense log grid,
+2 x 2 block per neighbour), so the roughness is chosen on a log grid,
 refined by a parabola through the best three grid values and a few Newton
 steps; standard
 deviations come from the Gauss-Newton covariance of (ps, ln roughness) with
-the albedos profiled out.
+the albedos profiled out. A pooled lobe, like a point's own, needs evidence:
+two strong-specular (`T_spec`) samples among the same-material neighbours.
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ from .classify import T_SPEC
 __all__ = ["pooled_specular"]
 
 _CHUNK = 2000
+#: Roughness grid of the start: every other value of the shared grid (32, 3 mrad to 1.2 rad),
+#: refined by a parabola and Newton steps.
+_GRID = brdf.ROUGHNESS_GRID[::2]
 
 
 def _quotient(num, den):
@@ -42,28 +46,28 @@ def _quotient(num, den):
 
 
 def _lobe(model, ln_rough, cos_i, cos_o, theta_r):
-    """Unit-ps specular lobe of every sample `(C, K, M)` at ln roughness `(C,)` or scalar."""
+    """Unit-ps specular lobe of every sample `(K, M, C)` at ln roughness `(C,)` or scalar."""
     _, spec_fn = brdf.MODELS[model]
-    ln_rough = jnp.broadcast_to(jnp.reshape(ln_rough, jnp.shape(ln_rough) + (1, 1)), cos_i.shape)
-    return spec_fn(1.0, ln_rough, cos_i, cos_o, theta_r)
+    return spec_fn(1.0, jnp.broadcast_to(ln_rough, cos_i.shape), cos_i, cos_o, theta_r)
 
 
 @partial(jax.jit, static_argnames=("model",))
 def _fit_chunk(y, e, w, cos_i, cos_o, theta_r, model):
-    """One chunk, each `(C, K, M)` (point, neighbour, sample): grey radiance `y`, irradiance
-    `e`, weights `w` (0: unused) and angles -> ps, ln roughness, std ps, std ln roughness `(C,)`.
+    """One chunk, each `(K, M, C)` (neighbour, sample, point; the points last, so that every
+    sum runs along them vectorised): grey radiance `y`, irradiance `e`, weights `w` (0:
+    unused) and angles -> ps, ln roughness, std ps, std ln roughness `(C,)`.
 
     Model per neighbour k: `y_kj = d_k a_kj + ps b_kj`, `a = e / pi`, `b = e lobe`."""
     a = e / jnp.pi
-    saa, say = jnp.sum(w * a * a, -1), jnp.sum(w * a * y, -1)  # (C, K)
+    saa, say = jnp.sum(w * a * a, 1), jnp.sum(w * a * y, 1)  # (K, C)
     inv_aa = _quotient(1.0, saa)
-    base = jnp.sum(jnp.sum(w * y * y, -1) - say * say * inv_aa, -1)  # cost of albedos alone (C,)
+    base = jnp.sum(jnp.sum(w * y * y, 1) - say * say * inv_aa, 0)  # cost of albedos alone (C,)
 
     def projected(b):
         """(num, den) of ps = num / den with every d_k eliminated, `(C,)` each."""
-        sab = jnp.sum(w * a * b, -1)
-        num = jnp.sum(jnp.sum(w * b * y, -1) - sab * say * inv_aa, -1)
-        den = jnp.sum(jnp.sum(w * b * b, -1) - sab * sab * inv_aa, -1)
+        sab = jnp.sum(w * a * b, 1)
+        num = jnp.sum(jnp.sum(w * b * y, 1) - sab * say * inv_aa, 0)
+        den = jnp.sum(jnp.sum(w * b * b, 1) - sab * sab * inv_aa, 0)
         return num, den, sab
 
     def cost_at(ln_r):
@@ -74,9 +78,9 @@ def _fit_chunk(y, e, w, cos_i, cos_o, theta_r, model):
     def grid_cost(_, ln_r):
         return None, cost_at(ln_r)
 
-    logs = jnp.log(jnp.asarray(brdf.ROUGHNESS_GRID, dtype=e.dtype))
+    logs = jnp.log(jnp.asarray(_GRID, dtype=e.dtype))
     _, cost_g = jax.lax.scan(grid_cost, None, logs)  # (G, C), one grid value at a time
-    k = jnp.clip(jnp.argmin(cost_g, 0), 1, len(brdf.ROUGHNESS_GRID) - 2)
+    k = jnp.clip(jnp.argmin(cost_g, 0), 1, len(_GRID) - 2)
     pick = lambda arr, off: jnp.take_along_axis(arr, (k + off)[None], 0)[0]  # noqa: E731
     c0, c1, c2 = pick(cost_g, -1), pick(cost_g, 0), pick(cost_g, 1)
     curv = c0 - 2 * c1 + c2
@@ -84,15 +88,16 @@ def _fit_chunk(y, e, w, cos_i, cos_o, theta_r, model):
     spacing = logs[1] - logs[0]
     ln_r = logs[k] + jnp.clip(shift, -1.0, 1.0) * spacing
 
-    # Newton steps from the parabola's minimum (the rows are independent, so the gradient
-    # of the summed cost is every row's own derivative): the grid alone leaves errors
-    # comparable to the standard deviations.
-    grad = jax.grad(lambda lr: jnp.sum(cost_at(lr)))
+    # Newton steps from the parabola's minimum: the grid alone leaves errors comparable to
+    # the standard deviations.
+    def slope(lr):  # forward mode: each row's derivative (the rows are independent)
+        return jax.jvp(cost_at, (lr,), (jnp.ones_like(lr),))[1]
 
     def newton(_, state):
         lr, c = state
-        g, h = jax.jvp(grad, (lr,), (jnp.ones_like(lr),))
-        trial = lr - jnp.clip(jnp.where(h > 0, g / jnp.where(h > 0, h, 1.0), 0.0), -spacing, spacing)
+        g, h = jax.jvp(slope, (lr,), (jnp.ones_like(lr),))
+        step = jnp.clip(jnp.where(h > 0, g / jnp.where(h > 0, h, 1.0), 0.0), -spacing, spacing)
+        trial = jnp.clip(lr - step, logs[0], logs[-1])
         c_t = cost_at(trial)
         better = c_t < c
         return jnp.where(better, trial, lr), jnp.where(better, c_t, c)
@@ -105,12 +110,12 @@ def _fit_chunk(y, e, w, cos_i, cos_o, theta_r, model):
     ps = jnp.maximum(_quotient(num, den), 0.0)
     cost = jnp.maximum(base - 2.0 * ps * num + ps * ps * den, 0.0)
     # Gauss-Newton matrix of (ps, ln roughness), the albedos profiled out (Schur complement).
-    d = ps[:, None, None] * e * dg
-    sad = jnp.sum(w * a * d, -1)
+    d = ps[None, None] * e * dg
+    sad = jnp.sum(w * a * d, 1)
     m_pp = den
-    m_pd = jnp.sum(jnp.sum(w * b * d, -1) - sab * sad * inv_aa, -1)
-    m_dd = jnp.sum(jnp.sum(w * d * d, -1) - sad * sad * inv_aa, -1)
-    dof = jnp.sum(w > 0, (-2, -1)) - jnp.sum(saa > 0, -1) - 2
+    m_pd = jnp.sum(jnp.sum(w * b * d, 1) - sab * sad * inv_aa, 0)
+    m_dd = jnp.sum(jnp.sum(w * d * d, 1) - sad * sad * inv_aa, 0)
+    dof = jnp.sum(w > 0, (0, 1)) - jnp.sum(saa > 0, 0) - 2
     s2 = cost / jnp.maximum(dof, 1)
     det = m_pp * m_dd - m_pd * m_pd
     ok = (det > 1e-12 * m_pp * m_dd) & (det > 0) & (dof > 0)
@@ -122,21 +127,22 @@ def _fit_chunk(y, e, w, cos_i, cos_o, theta_r, model):
 
 def pooled_specular(rows: dict, pd: np.ndarray, vertices: np.ndarray, model: str, k: int = 12,
                     radius: float | None = None, tau: float = 0.05, min_snr: float = 3.0,
-                    noise_floor: float = 0.0) -> dict:
+                    noise_floor: float = 0.0, where: np.ndarray | None = None) -> dict:
     """Shared-lobe fit of every point with its same-material neighbours.
 
     **Arguments:** `rows` from `local.prepare_rows`; `pd` `(N, 3)` each point's
-    diffuse albedo (held fixed); `vertices` `(N, 3)`; `k` neighbours (self
-    included); `radius` [m] (default: 4 x the median nearest-neighbour spacing);
-    `tau`: neighbours whose albedo differs by more than `1.18 tau`
+    diffuse albedo (to group by material); `vertices` `(N, 3)`; `k` neighbours
+    (self included); `radius` [m] (default: 4 x the median nearest-neighbour
+    spacing); `tau`: neighbours whose albedo differs by more than `1.18 tau`
     (`exp(-d^2 / (2 tau^2)) < 1/2`) are another material and left out;
     `noise_floor` absolute radiance noise floor of the weights, as in
-    `local.fit_rows`.
+    `local.fit_rows`; `where` `(N,)` bool: the points to fit (default all).
 
     **Returns:** dict of `(N,)` arrays: `ps`, `roughness`, `std_ps`,
     `std_roughness`, and `identifiable` (two or more T_spec samples among the
-    neighbours of weight >= 1/2, ps `min_snr` std above 0, roughness known to a
-    factor e).
+    same-material neighbours, ps `min_snr` std above 0, roughness known to a
+    factor e). Points not fitted (outside `where`, or without that T_spec
+    evidence) are not identifiable, with ps and roughness 0 and infinite std.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     n, m = np.shape(rows["use"])
@@ -151,30 +157,39 @@ def pooled_specular(rows: dict, pd: np.ndarray, vertices: np.ndarray, model: str
     # count as whole degrees of freedom while adding little residual: too small a std).
     same = (np.exp(-np.sum((pd[nbr] - pd[:, None]) ** 2, -1) / (2 * tau**2)) >= 0.5) & present  # (N, K)
 
-    y, e, use = np.asarray(rows["y"]), np.asarray(rows["e"]), np.asarray(rows["use"])
-    grey = np.mean(y, -1)  # (N, M): the lobe is grey
-    # Method I's noise model (`local._noise_weights`): 1 % of the value, floored per point.
-    floor = np.maximum(noise_floor, 1e-4 * np.max(np.where(use, grey, 0.0), 1, keepdims=True))
-    weight_obs = np.where(use, 1.0 / ((0.01 * grey) ** 2 + floor**2), 0.0)
-
-    w = same[..., None] * weight_obs[nbr]  # (N, K, M)
-    fields = [grey[nbr], np.where(use, e, 0.0)[nbr], w] + [np.asarray(rows[key])[nbr]
-                                                          for key in ("cos_i", "cos_o", "theta_r")]
-    out = {key: np.empty(n) for key in ("ps", "ln_r", "sd_ps", "sd_lr")}
-    for start in range(0, n, _CHUNK):  # fixed-size chunks: one compilation, bounded memory
-        sl = slice(start, min(start + _CHUNK, n))
-        pad = [(0, _CHUNK - (sl.stop - sl.start)), (0, 0), (0, 0)]
-        chunk = [np.pad(f[sl], pad, constant_values=1.0 if i in (3, 4) else 0.0)  # cosines 1, the rest 0
-                 for i, f in enumerate(fields)]
-        res = _fit_chunk(*[jnp.asarray(c) for c in chunk], model=model)
-        for key, value in zip(("ps", "ln_r", "sd_ps", "sd_lr"), res):
-            out[key][sl] = np.asarray(value)[: sl.stop - sl.start]
-    rough = np.exp(out["ln_r"])
+    y, use = np.asarray(rows["y"]), np.asarray(rows["use"])
     # As for a single point (`local.fit_rows`): a lobe needs samples near its peak, here
     # two strong-specular (T_spec) ones among the same-material neighbours.
     spec = use & (np.asarray(rows["classes"]) == T_SPEC)
     evidence = np.sum(same * spec.sum(1)[nbr], 1) >= 2
-    identifiable = evidence & (out["ps"] > min_snr * out["sd_ps"]) & (out["sd_lr"] < 1.0)
-    return {"ps": out["ps"], "roughness": rough, "std_ps": out["sd_ps"],
-            "std_roughness": np.where(np.isfinite(out["sd_lr"]), rough * out["sd_lr"], np.inf),
+    fit = evidence if where is None else evidence & np.asarray(where, bool)
+
+    grey = np.mean(y, -1)  # (N, M): the lobe is grey
+    # Method I's noise model (`local._noise_weights`): 1 % of the value, floored per point.
+    floor = np.maximum(noise_floor, 1e-4 * np.max(np.where(use, grey, 0.0), 1, keepdims=True))
+    var = (0.01 * grey) ** 2 + floor**2
+    weight_obs = np.divide(1.0, var, out=np.zeros_like(var), where=use & (var > 0))
+    per_point = [grey, np.where(use, np.asarray(rows["e"]), 0.0), weight_obs] + [
+        np.asarray(rows[key]) for key in ("cos_i", "cos_o", "theta_r")]
+
+    out = {key: np.zeros(n) for key in ("ps", "ln_r")}
+    out.update({key: np.full(n, np.inf) for key in ("sd_ps", "sd_lr")})
+    todo = np.flatnonzero(fit)
+    for start in range(0, len(todo), _CHUNK):  # fixed-size chunks: one compilation, bounded memory
+        idx = todo[start:start + _CHUNK]
+        pad = _CHUNK - len(idx)
+        chunk = []
+        for i, field in enumerate(per_point):
+            values = field[nbr[idx]]  # (C, K, M)
+            if i == 2:
+                values = values * same[idx][..., None]
+            values = np.pad(values, [(0, pad), (0, 0), (0, 0)], constant_values=1.0 if i in (3, 4) else 0.0)
+            chunk.append(np.ascontiguousarray(np.moveaxis(values, 0, -1)))  # (K, M, C)
+        res = _fit_chunk(*[jnp.asarray(c) for c in chunk], model=model)
+        for key, value in zip(("ps", "ln_r", "sd_ps", "sd_lr"), res):
+            out[key][idx] = np.asarray(value)[: len(idx)]
+    rough = np.where(fit, np.exp(out["ln_r"]), 0.0)
+    identifiable = fit & (out["ps"] > min_snr * out["sd_ps"]) & (out["sd_lr"] < 1.0)
+    std_rough = np.multiply(rough, out["sd_lr"], out=np.full(n, np.inf), where=np.isfinite(out["sd_lr"]))
+    return {"ps": out["ps"], "roughness": rough, "std_ps": out["sd_ps"], "std_roughness": std_rough,
             "identifiable": identifiable}
