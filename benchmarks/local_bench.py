@@ -1,6 +1,7 @@
 """Benchmark: Method I's per-point fits, 100k points x 12 lights.
 
-Run: `python -m benchmarks.local_bench [--points 100000] [--subset 1000]`.
+Run: `python -m benchmarks.local_bench [--points 100000] [--subset 1000]`, or
+`python -m benchmarks.local_bench --quality`.
 
 Rows with random Torrance-Sparrow reflectance and geometry (5 samples inside
 the specular lobe, 7 outside it) and 1 % relative noise are fitted in one run:
@@ -21,6 +22,18 @@ one), points per second, the ratio to the faster scipy loop in wall and CPU
 time, and median relative errors of pd, ps and sigma on the subset, so speed
 is compared at equal error. Also: how many noise-free rows (same geometry)
 miss the truth by more than 1e-4 relative -- rows stuck in a wrong basin.
+
+`--quality` (a few minutes) measures what the estimates are worth instead and
+writes its own section of the results file (the speed section is kept):
+
+- coverage (share of observed points measured) on the convex vase V, direct
+  light, 1 % noise, 8 bits, against the number of lights, beside the share of
+  points that get any strong-specular sample at all;
+- Object E with interreflections (the fold of Figs. 12-13 and 16): Method I's
+  pd across the fold, Method II's errors;
+- pooled lobes: relighting error under the 52 lights left out of the fit, on
+  the vase with a sharp glaze (sigma 0.02 and 0.05 rad) and its own material,
+  for plain per-point fits, window interpolation (`pool=False`) and pooling.
 """
 
 from __future__ import annotations
@@ -76,6 +89,206 @@ def _ratio(r):
     return f"{r:.0f}x" if r >= 10 else f"{r:.1f}x"
 
 
+_QUALITY_MARK = "<!-- quality: python -m benchmarks.local_bench --quality -->"
+
+
+def _write_section(path, text, quality):
+    """Replace the speed part (before `_QUALITY_MARK`) or the quality part (from it) of `path`."""
+    old = open(path).read() if os.path.exists(path) else ""
+    speed_part, _, quality_part = old.partition(_QUALITY_MARK)
+    if quality:
+        new = speed_part.rstrip("\n") + "\n\n" + _QUALITY_MARK + "\n" + text
+    else:
+        new = text + ("\n" + _QUALITY_MARK + quality_part if quality_part else "")
+    with open(path, "w") as fh:
+        fh.write(new)
+
+
+def _direct(scan, pd, ps, sigma):
+    """Direct Torrance-Sparrow radiance `(N, K, 3)` of `scan`'s geometry (no cast shadows)."""
+    import jax.numpy as jnp
+
+    from jaxrefl import brdf
+    from jaxrefl.rig import observation_geometry
+
+    g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
+    full, _ = brdf.MODELS["torrance-sparrow"]
+    f = jax.vmap(jax.vmap(full, in_axes=(None, None, None, 0, 0, 0)))(
+        jnp.asarray(pd), jnp.asarray(ps), jnp.log(jnp.asarray(sigma)), g.cos_i, g.cos_o, g.theta_r)
+    e = scan.intensities()[None] * np.maximum(np.asarray(g.cos_i), 0) / np.asarray(g.light_distance) ** 2
+    return np.asarray(f) * e[..., None]
+
+
+def _coverage(lines):
+    from data_synth.scans import Sensor, make_scan
+    from jaxrefl.classify import T_SPEC, classify_scan
+    from jaxrefl.lights import select_lights
+    from jaxrefl.local import MEASURED, estimate_local
+
+    plan, _ = make_scan("V", resolution=64)
+    m = classify_scan(plan, use_observations=False)
+    sel = select_lights(m.diffuse_only, m.strong_specular, m.seen, weights=m.pixel_weight)
+    rest = [int(k) for k in np.argsort(-m.strong_specular.sum(0), kind="stable") if k not in sel.selected]
+    order = list(sel.selected) + rest
+    lines += [
+        "## Coverage on the convex vase V",
+        "",
+        f"Mesh resolution 64 ({plan.n_points:,} points), scanner and 60-light rack of the paper, direct light, "
+        f"1 % noise, 8 bits. The selected lights (greedy, §2.2) are {sel.selected}: their specular coverage "
+        f"reaches {sel.specular_coverage / sel.specular_coverage_all:.1%} of what all 60 give. More lights are "
+        "added in order of their strong-specular counts. `T_spec >= 1`: share of observed points with a "
+        "strong-specular sample (theta_r <= 20 deg) at all; measured: Method I's coverage (per point, and "
+        "weighted by image area as the paper counts pixels); errors are medians over measured points; "
+        "calibration: share of measured points within one reported std (pd / ps / sigma).",
+        "",
+        "| lights | T_spec >= 1 | T_spec >= 2 | measured | measured (image) | pd err | ps err | sigma err "
+        "| calibration |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    rel = lambda a, b: np.abs(a - b) / b  # noqa: E731
+    for k in (4, 6, len(sel.selected), 12, 16, 24, 60):
+        lights = sel.selected if k == len(sel.selected) else order[:k]
+        scan, _ = make_scan("V", resolution=64, lights=lights, sensor=Sensor(noise=0.01, bits=8), seed=3)
+        n_spec = (classify_scan(scan).classes == T_SPEC).sum(1)
+        est = estimate_local(scan)
+        meas, obs = est.status == MEASURED, est.pd_measured
+        w = np.where(obs, m.pixel_weight, 0.0)
+        cal = [float((np.abs(v - t) <= s)[meas].mean()) for v, t, s in (
+            (est.pd, scan.true_pd, est.std_pd), (est.ps, scan.true_ps, est.std_ps),
+            (est.roughness, scan.true_sigma, est.std_roughness))]
+        lines.append(
+            f"| {k}{' (selected)' if k == len(sel.selected) else ''} | {np.mean(n_spec[obs] >= 1):.1%} | "
+            f"{np.mean(n_spec[obs] >= 2):.1%} | {meas[obs].mean():.1%} | {w[meas].sum() / w.sum():.1%} | "
+            f"{np.median(rel(est.pd, scan.true_pd)[meas]):.2%} | {np.median(rel(est.ps, scan.true_ps)[meas]):.2%} | "
+            f"{np.median(rel(est.roughness, scan.true_sigma)[meas]):.2%} | {' / '.join(f'{c:.0%}' for c in cal)} |")
+    up = np.degrees(np.arcsin(np.clip(plan.normals[:, 1], -1, 1)))
+    lines += ["", f"{np.mean(np.abs(up) <= 20):.1%} of the vase's points have their normal within 20 deg "
+              "(theta_th2) of horizontal, about the T_spec >= 1 share: seen from the object the rack is small "
+              "(+-12 deg vertically, so half vectors stay within about 6 deg of the camera direction), and a "
+              "strong-specular sample needs the normal within 20 deg of a half vector. Coverage is bounded by "
+              "the geometry and the rig, not by the estimator: measured reaches the T_spec >= 1 share, and no "
+              "number of lights on this rack raises it (the paper's 83-92 % are of its own objects and rig).",
+              ""]
+
+
+def _fold(lines):
+    from data_synth.objects import fold_coordinate
+    from data_synth.scans import make_scan
+    from jaxrefl.classify import T_DIFF
+    from jaxrefl.local import estimate_local, prepare_rows
+    from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
+
+    edges = [0.0, 0.01, 0.02, 0.04, 0.08, 0.12, 0.201]
+    lines += [
+        "## Object E with interreflections (Figs. 12-13, 16)",
+        "",
+        "Resolution 32, scanner, lights 24, 9, 0, 50, 59, path-traced with 1024 paths per observation. No "
+        "sample of either setup is strong-specular, so no lobe is measured (or pooled): the interreflected "
+        "light goes to pd, which rises toward the fold as in the paper's Fig. 12 (an earlier identifiability "
+        "rule took it for broad lobes and pd fell to 0.06 at the fold). Median pd (grey) by distance from "
+        "the fold [cm]; mean relative pd errors of Methods I and II within 2 cm of the fold, farther, and on "
+        "points without a diffuse-only sample.",
+        "",
+        "| setup | truth | " + " | ".join(f"{a * 100:.0f}-{b * 100:.0f}" for a, b in zip(edges[:-1], edges[1:]))
+        + " | lobes | I near / far | II near / far | II without T_diff |",
+        "|---|---:|" + "---:|" * (len(edges) - 1) + "---:|---:|---:|---:|",
+    ]
+    for setup in ("diffuse", "glossy"):
+        scan, _ = make_scan("E", resolution=32, setup=setup, rig="scanner", lights=[24, 9, 0, 50, 59],
+                            global_illumination=True, samples=1024, seed=0)
+        rows = prepare_rows(scan)
+        no_diff = ~((rows["classes"] == T_DIFF) & rows["use"]).any(1)
+        d = np.abs(fold_coordinate(scan.vertices))
+        near = d < 0.02
+        one, two = estimate_local(scan), estimate_radiosity(scan, RadiosityOptions(rays=256))
+        own = one.pd_measured
+        grey = one.pd.mean(1)
+        prof = [np.median(grey[(d >= a) & (d < b) & own]) for a, b in zip(edges[:-1], edges[1:])]
+        err = {k: (np.abs(e.pd - scan.true_pd) / scan.true_pd).mean(1) for k, e in (("I", one), ("II", two))}
+        lines.append(
+            f"| {setup} | {scan.true_pd.mean():.2f} | " + " | ".join(f"{p:.3f}" for p in prof)
+            + f" | {int(one.specular_identifiable.sum())} | {err['I'][near & own].mean():.1%} / "
+            f"{err['I'][~near & own].mean():.1%} | {err['II'][near & own].mean():.1%} / "
+            f"{err['II'][~near & own].mean():.1%} | {err['II'][no_diff & own].mean():.2%} |")
+    lines.append("")
+
+
+def _pool(lines):
+    import dataclasses
+
+    from data_synth.scans import Sensor, apply_sensor, make_scan
+    from jaxrefl.classify import classify_scan
+    from jaxrefl.lights import select_lights
+    from jaxrefl.local import LocalOptions, estimate_local, fit_rows, prepare_rows, quantisation_step
+
+    plan, _ = make_scan("V", resolution=64)
+    m = classify_scan(plan, use_observations=False)
+    sel = select_lights(m.diffuse_only, m.strong_specular, m.seen, weights=m.pixel_weight).selected
+    held = np.setdiff1d(np.arange(plan.n_lights), sel)
+    lines += [
+        "## Pooled lobes: relighting under held-out lights",
+        "",
+        f"The vase V (resolution 64) fitted under its {len(sel)} selected lights (1 % noise, 8 bits) and "
+        f"relit under the other {len(held)}; relative RMS radiance error over every lit, seen sample, over "
+        "the highlight samples (true specular part > 10 % of the radiance) and the rest. Plain: every point's "
+        "own fit, identifiable or not; window: `pool=False` (lobes from the W-ring, else from farther away); "
+        "pool: the default. Seconds: `estimate_local`, warm.",
+        "",
+        "| material | points measured | pooled | plain: all / highlight | window: all / highlight / rest "
+        "| pool: all / highlight / rest | s window / pool |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    n = plan.n_points
+    for name, ps, sigma in (("glaze, sigma 0.02 rad, ps 0.4", np.full(n, 0.4), np.full(n, 0.02)),
+                            ("glaze, sigma 0.05 rad, ps 0.4", np.full(n, 0.4), np.full(n, 0.05)),
+                            ("V's own (sigma 0.06 / 0.18)", plan.true_ps, plan.true_sigma)):
+        truth = _direct(plan, plan.true_pd, ps, sigma)
+        scan, _ = make_scan("V", resolution=64, lights=sel)
+        obs, level = apply_sensor(truth[:, sel], scan.valid, Sensor(noise=0.01, bits=8), np.random.default_rng(3))
+        scan = dataclasses.replace(scan, radiance=np.where(scan.valid[..., None], obs, 0.0).astype(np.float32),
+                                   saturation=level, true_ps=ps, true_sigma=sigma)
+        lit = m.measurable[:, held]
+        spec = truth[:, held] - _direct(plan, plan.true_pd, np.zeros(n), sigma)[:, held]
+        bright = lit & (spec.mean(-1) > 0.1 * truth[:, held].mean(-1))
+
+        def errors(pd, ps_e, sigma_e):
+            d = _direct(plan, pd, ps_e, np.maximum(sigma_e, 1e-6))[:, held] - truth[:, held]
+            t = truth[:, held]
+            return [np.sqrt(np.sum(d[k] ** 2) / np.sum(t[k] ** 2)) for k in (lit, bright, lit & ~bright)]
+
+        rows = prepare_rows(scan)
+        plain = fit_rows(rows, noise_floor=quantisation_step(scan.radiance, rows["use"]) / np.sqrt(12))
+        out, secs = {}, {}
+        for pool in (False, True):
+            estimate_local(scan, LocalOptions(pool=pool))  # compile
+            t0 = time.perf_counter()
+            out[pool] = estimate_local(scan, LocalOptions(pool=pool))
+            secs[pool] = time.perf_counter() - t0
+        e_plain = errors(plain["pd"], plain["ps"], plain["roughness"])
+        e_win, e_pool = (errors(out[p].pd, out[p].ps, out[p].roughness) for p in (False, True))
+        fmt = lambda es: " / ".join(f"{e:.2%}" for e in es)  # noqa: E731
+        lines.append(f"| {name} | {int((out[True].status == 0).sum()):,} | "
+                     f"{out[True].meta['points_with_pooled_lobe']:,} | {fmt(e_plain[:2])} | {fmt(e_win)} | "
+                     f"{fmt(e_pool)} | {secs[False]:.1f} / {secs[True]:.1f} |")
+    lines.append("")
+
+
+def quality(out):
+    lines = [
+        "# Method I: coverage, model mismatch, pooled lobes",
+        "",
+        f"- Date: {datetime.datetime.now().isoformat(timespec='seconds')}; machine: {os.cpu_count()} cores, "
+        f"{platform.platform()}; float64.",
+        "",
+    ]
+    _coverage(lines)
+    _fold(lines)
+    _pool(lines)
+    text = "\n".join(lines) + "\n"
+    print(text)
+    _write_section(out, text, quality=True)
+
+
 def main(argv=None):
     import jax.numpy as jnp
 
@@ -87,7 +300,11 @@ def main(argv=None):
     parser.add_argument("--subset", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", default="benchmarks/RESULTS_local.md")
+    parser.add_argument("--quality", action="store_true",
+                        help="coverage, the fold object and pooled lobes instead of speed (minutes)")
     args = parser.parse_args(argv)
+    if args.quality:
+        return quality(args.out)
 
     rng = np.random.default_rng(0)
     rows, pd, ps, sigma = synthetic_rows(rng, args.points, 12, "torrance-sparrow")
@@ -159,8 +376,7 @@ def main(argv=None):
                      f"{e_pd:.4f} | {e_ps:.4f} | {e_s:.4f} |")
     text = "\n".join(lines) + "\n"
     print(text)
-    with open(args.out, "w") as fh:
-        fh.write(text)
+    _write_section(args.out, text, quality=False)
 
 
 if __name__ == "__main__":
