@@ -704,7 +704,10 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     if refit.any():
         jrows = {k: jnp.asarray(v) for k, v in rows.items()}
         pd_fix, std_fix = _refit_diffuse(options.model, jrows, jnp.log(jnp.maximum(ps, 1e-300)),
-                                         jnp.log(jnp.maximum(rough, 1e-300)), fit["weights"])
+                                         # no lobe (ps 0, roughness 0 "undefined"): any roughness
+                                         # gives a zero lobe, 0 would give 0/0 in the Ward lobe
+                                         jnp.log(np.where(ps > 0, np.maximum(rough, 1e-300), 1.0)),
+                                         fit["weights"])
         pd[refit], std_pd[refit] = np.asarray(pd_fix)[refit], np.asarray(std_fix)[refit]
     if (~observed_any).any():
         if observed_any.any():

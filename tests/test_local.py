@@ -429,3 +429,12 @@ def test_standard_deviations_match_autodiff_covariance(model):
     sd = np.sqrt(np.asarray(var))
     sd[:, 4] *= fit["roughness"]  # std of the roughness itself, from that of its log
     np.testing.assert_allclose(np.c_[fit["std_pd"], fit["std_ps"], fit["std_roughness"]], sd, rtol=1e-5)
+
+
+def test_ward_diffuse_object_without_any_lobe_keeps_its_albedo():
+    """No point has a measurable highlight (white paper): ps is 0 everywhere, and pd
+    still comes from the samples (the Ward lobe at roughness 0 must not turn it to 0)."""
+    scan, _ = make_scan("E", resolution=16, setup="diffuse", lights=[23, 26, 33, 36], model="ward")
+    est = estimate_local(scan, LocalOptions(model="ward"))
+    assert np.all(est.ps == 0) and np.all(np.isfinite(est.pd))
+    np.testing.assert_allclose(est.pd[est.pd_measured], scan.true_pd[est.pd_measured], rtol=0.02)
