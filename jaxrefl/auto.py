@@ -51,6 +51,7 @@ statistics, the predicted errors, every region and the reasons.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -380,7 +381,9 @@ def photon_available(model: str) -> tuple[bool, str]:
     if model != "ward":
         return False, "Method III fits the Ward model (use --model ward)"
     try:
-        from . import inverse_photon  # noqa: F401
+        # import_module, not `from . import`: the latter finds an already imported
+        # submodule on the package even when sys.modules says it is unavailable
+        importlib.import_module(f"{__package__}.inverse_photon")
     except ImportError as exc:
         return False, f"Method III is not installed ({exc})"
     return True, ""
