@@ -39,6 +39,17 @@ class FillResult(NamedTuple):
     diffused: np.ndarray
 
 
+def window_reach(adjacency: sp.csr_matrix, window: int) -> sp.csr_matrix:
+    """0/1 matrix `(N, N)`: entry `(u, v)` is 1 where `v` lies in the `(W - 1) / 2`-ring
+    around `u` (`u` itself included)."""
+    n = adjacency.shape[0]
+    step = adjacency + sp.identity(n, format="csr")
+    reach = sp.identity(n, format="csr")
+    for _ in range((window - 1) // 2):
+        reach = reach @ step
+    return (reach > 0).astype(np.float64)
+
+
 def window_fill(values, known, adjacency: sp.csr_matrix, window: int = 5, max_sweeps: int = 10_000) -> FillResult:
     """Fill rows of `values` `(N, C)` (or `(N,)`) where `known` `(N,)` is False.
 
@@ -51,14 +62,9 @@ def window_fill(values, known, adjacency: sp.csr_matrix, window: int = 5, max_sw
     squeeze = vals.ndim == 1
     vals = vals.reshape(len(vals), -1).copy()
     known = np.asarray(known, dtype=bool)
-    n = len(vals)
     if not known.any():
         raise ValueError("window_fill: no measured value to fill from")
-    step = adjacency + sp.identity(n, format="csr")
-    reach = sp.identity(n, format="csr")
-    for _ in range((window - 1) // 2):
-        reach = reach @ step
-    reach = (reach > 0).astype(np.float64)
+    reach = window_reach(adjacency, window)
     k = known.astype(np.float64)
     counts = reach @ k
     sums = reach @ (vals * k[:, None])

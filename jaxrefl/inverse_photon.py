@@ -61,10 +61,10 @@ import optimistix as optx
 
 from . import brdf
 from .classify import T_DIFF, T_SPEC, Thresholds
-from .fill import vertex_adjacency, window_fill
+from .fill import vertex_adjacency, window_fill, window_reach
 from .lm import gauss_newton_1d
 from .local import INTERPOLATED, MEASURED, UNRESOLVED, Estimate, LocalOptions, _noise_weights, \
-    estimate_local, prepare_rows, quantisation_step
+    estimate_local, fill_unobserved_pd, finite_outputs, prepare_rows, quantisation_step
 from .photon import PhotonReplay, replay_parts
 from .radiosity import light_configs
 from .raycast import RayCaster
@@ -266,15 +266,9 @@ def _identifiable(ps, var_ps, var_rho, chi2, rows, min_snr):
     return rows["lobe"] & jnp.isfinite(sd_ps) & jnp.isfinite(sd_rho) & (ps > min_snr * sd_ps) & (sd_rho < 1.0)
 
 
-def _window_reach(faces, n, window):
-    """`(rows, cols)` int32 of the `(window - 1) / 2`-ring around every vertex (itself included)."""
-    import scipy.sparse as sp
-
-    step = vertex_adjacency(faces, n) + sp.identity(n, format="csr")
-    reach = sp.identity(n, format="csr")
-    for _ in range((window - 1) // 2):
-        reach = reach @ step
-    reach = reach.tocoo()
+def _window_reach(adjacency, window):
+    """`(rows, cols)` int32 of every vertex's window (`fill.window_reach`)."""
+    reach = window_reach(adjacency, window).tocoo()
     return jnp.asarray(reach.row, jnp.int32), jnp.asarray(reach.col, jnp.int32)
 
 
@@ -379,11 +373,14 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     timings = {}
     t0 = time.perf_counter()
     caster = caster or RayCaster(scan.vertices, scan.faces)
-    init = estimate_local(scan, options.local, caster)
+    rows_np = prepare_rows(scan, options.thresholds, caster)
+    timings["classify"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    init = estimate_local(scan, options.local, caster, rows=rows_np)
     timings["local_start"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    rows_np = prepare_rows(scan, options.thresholds, caster)
     use, classes = rows_np["use"], rows_np["classes"]
     has_diff = (use & (classes == T_DIFF)).any(1)
     a_mask = np.where(has_diff[:, None], use & (classes == T_DIFF), use)
@@ -398,7 +395,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(a_mask), b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe),
                 joint=jnp.asarray(~has_diff),
                 n_b=jnp.asarray(b_mask.sum(1)))
-    reach = _window_reach(scan.faces, scan.n_points, options.window)
+    adjacency = vertex_adjacency(scan.faces, scan.n_points)
+    reach = _window_reach(adjacency, options.window)
     configs = light_configs(scan.light_pos, scan.n_points, options.light_bin)
     n_cfg = len(configs.positions)
     per_config = scan.light_pos.ndim == 3
@@ -461,7 +459,6 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                                             options.min_snr))
     observed_any = use.any(1)
     status = np.full(scan.n_points, MEASURED, np.int8)
-    adjacency = vertex_adjacency(scan.faces, scan.n_points)
     if identifiable.any():
         logs = np.c_[np.log(np.maximum(ps, 1e-12)), rho]
         filled = window_fill(logs, identifiable, adjacency, options.window)
@@ -482,21 +479,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     std_pd = np.where(info > 0, np.sqrt(scale_a / np.where(info > 0, info, 1.0)), np.inf)
     std_ps = np.where(identifiable, sd_ps, np.inf)
     std_alpha = np.where(identifiable, alpha * sd_rho, np.inf)
-    if (~observed_any).any():
-        if observed_any.any():
-            filled = window_fill(pd, observed_any, adjacency, options.window)
-            pd[~observed_any] = filled.values[~observed_any]
-            status[~observed_any & filled.window] = np.maximum(status[~observed_any & filled.window], INTERPOLATED)
-            status[~observed_any & filled.diffused] = UNRESOLVED
-        else:
-            status[:] = UNRESOLVED
-        std_pd[~observed_any] = np.inf
+    fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window)
     timings["fill"] = time.perf_counter() - t0
-
-    for a in (pd, ps, alpha):
-        np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    for a in (std_pd, std_ps, std_alpha):
-        np.nan_to_num(a, copy=False, nan=np.inf, posinf=np.inf)
+    finite_outputs((pd, ps, alpha), (std_pd, std_ps, std_alpha))
     meta = {
         "method": "photon", "model": "ward",
         "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in asdict(options).items()},

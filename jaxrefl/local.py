@@ -69,6 +69,7 @@ from .raycast import RayCaster
 from .rig import observation_geometry
 
 __all__ = ["MEASURED", "INTERPOLATED", "UNRESOLVED", "LocalOptions", "Estimate", "estimate_local",
+           "fill_unobserved_pd", "finite_outputs",
            "prepare_rows", "fit_rows", "specular_closed_form", "quantisation_step"]
 
 MEASURED, INTERPOLATED, UNRESOLVED = 0, 1, 2
@@ -644,8 +645,36 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
                   weights=np.asarray(_weights(rows["y"], rows["use"], noise_floor)))
 
 
-def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None) -> Estimate:
-    """Method I on a scan with radiance. See the module docstring.
+def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int) -> None:
+    """In place: pd of points without any usable sample from the observed ones in their
+    window (status at least `interpolated`; `unresolved` when filled from farther away
+    or when nothing is observed), their std infinite."""
+    if observed_any.all():
+        return
+    if observed_any.any():
+        filled = window_fill(pd, observed_any, adjacency, window)
+        pd[~observed_any] = filled.values[~observed_any]
+        near = ~observed_any & filled.window
+        status[near] = np.maximum(status[near], INTERPOLATED)
+        status[~observed_any & filled.diffused] = UNRESOLVED
+    else:
+        status[:] = UNRESOLVED
+    std_pd[~observed_any] = np.inf
+
+
+def finite_outputs(values, stds) -> None:
+    """In place: nothing non-finite leaves an estimator. Values never NaN (0), std may
+    be inf (unknown), never NaN."""
+    for a in values:
+        np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    for a in stds:
+        np.nan_to_num(a, copy=False, nan=np.inf, posinf=np.inf)
+
+
+def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None,
+                   rows: dict | None = None) -> Estimate:
+    """Method I on a scan with radiance. See the module docstring. `rows`: the scan's
+    `prepare_rows(scan, options.thresholds, caster)` when the caller has it already.
 
     **Returns:** `Estimate` (no NaN: unresolved values are filled, their
     standard deviations infinite).
@@ -654,7 +683,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
         raise ValueError("radiance: the scan has no observations to estimate from")
     timings = {}
     t0 = time.perf_counter()
-    rows = prepare_rows(scan, options.thresholds, caster)
+    rows = rows if rows is not None else prepare_rows(scan, options.thresholds, caster)
     q = quantisation_step(scan.radiance, rows["use"])
     timings["classify"] = time.perf_counter() - t0
 
@@ -709,23 +738,9 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
                                          jnp.log(np.where(ps > 0, np.maximum(rough, 1e-300), 1.0)),
                                          fit["weights"])
         pd[refit], std_pd[refit] = np.asarray(pd_fix)[refit], np.asarray(std_fix)[refit]
-    if (~observed_any).any():
-        if observed_any.any():
-            filled = window_fill(pd, observed_any, adjacency, options.window)
-            pd[~observed_any] = filled.values[~observed_any]
-            status[~observed_any & filled.window] = np.maximum(status[~observed_any & filled.window],
-                                                               INTERPOLATED)
-            status[~observed_any & filled.diffused] = UNRESOLVED
-        else:
-            status[:] = UNRESOLVED
-        std_pd[~observed_any] = np.inf
+    fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window)
     timings["fill"] = time.perf_counter() - t0
-
-    # Nothing non-finite leaves: std may be inf (unknown), values never NaN.
-    for a in (pd, ps, rough):
-        np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    for a in (std_pd, std_ps, std_rough):
-        np.nan_to_num(a, copy=False, nan=np.inf, posinf=np.inf)
+    finite_outputs((pd, ps, rough), (std_pd, std_ps, std_rough))
     meta = {"method": "local", "model": options.model,
             "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v)
                         for k, v in asdict(options).items()},
