@@ -317,12 +317,12 @@ def plot(res, path: str) -> None:
             if not rows:
                 ax.set_axis_off()
                 continue
-            for r in rows:
+            for k, r in enumerate(sorted(rows, key=lambda r: r["seconds"])):
                 s = r["setting"]
                 ax.scatter(r["seconds"], r["errors"][m], c=_COLOURS[s["method"]],
                            marker="s" if s["half"] else ("^" if s["solver"] == "simplex" else "o"),
                            s=36, zorder=3, edgecolors="k" if r.get("front", {}).get(m) else "none")
-                ax.annotate(r["label"], (r["seconds"], r["errors"][m]), fontsize=6.5, xytext=(3, 3),
+                ax.annotate(r["label"], (r["seconds"], r["errors"][m]), fontsize=6.5, xytext=(3, 3 if k % 2 == 0 else -9),
                             textcoords="offset points")
             on = sorted((r for r in rows if r.get("front", {}).get(m)), key=lambda r: r["seconds"])
             if on:
@@ -340,7 +340,7 @@ def plot(res, path: str) -> None:
     title = (f"Error against warm seconds: `{res['command']}`, {res['date']}, load {res['load_start'][0]:.1f} -> "
              f"{res['load_end'][0]:.1f} on {os.cpu_count()} cores. Blue: Method I, green: II, red: III, black: auto; "
              "square: half the lights, triangle: simplex; outlined and joined: the Pareto front.")
-    fig.suptitle("\n".join(textwrap.wrap(title, int(18 * 4.2 * len(scenes)))), fontsize=9)
+    fig.suptitle("\n".join(textwrap.wrap(title, int(13 * 4.2 * len(scenes)))), fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.1 / len(metrics)))
     fig.savefig(path, dpi=110)
     plt.close(fig)
