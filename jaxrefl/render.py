@@ -166,23 +166,23 @@ _STATUS_COLOURS = ("#2ca02c", "#f2c200", "#d62728")
 
 
 def _save_figure(path, fig) -> None:
-    import matplotlib.pyplot as plt
-
     from .io import atomic_write
 
-    try:
-        atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
-    finally:
-        plt.close(fig)
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
 
 
-def _pyplot():
+def _figure(**kw):
+    """A figure outside pyplot (no backend chosen, nothing to close): drawing files from
+    a notebook leaves its inline backend alone."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kw)
+
+
+def _cmap(name: str):
     import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return matplotlib.colormaps[name].with_extremes(bad="white")
 
 
 def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = None) -> None:
@@ -192,7 +192,6 @@ def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = 
     pixels `hits` `(H*W rays)` of a view of `shape` `(H, W)`. Written to PNG `path`."""
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
-    plt = _pyplot()
     rough_name = "sigma" if est.model == "torrance-sparrow" else "alpha"
     pd = shade(hits, faces, est.pd, shape)
     ps = shade(hits, faces, est.ps, shape)
@@ -201,14 +200,15 @@ def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = 
     nearest = faces[np.maximum(hits.face, 0), np.argmax(hits.barycentric, axis=1)]
     status = np.where(hits.hit, np.asarray(est.status, dtype=np.float64)[nearest], np.nan).reshape(shape)
     aspect = shape[1] / shape[0]
-    fig, axes = plt.subplots(2, 2, figsize=(2 * 3.6 * min(aspect, 2.5) + 1.6, 2 * 3.6 + 0.8))
+    fig = _figure(figsize=(2 * 3.6 * min(aspect, 2.5) + 1.6, 2 * 3.6 + 0.8))
+    axes = fig.subplots(2, 2)
     (a, b), (c, d) = axes
     pd_img = to_srgb8(pd, exposure=1.0, background=(255, 255, 255))
     a.imshow(pd_img)
     a.set_title("(a) diffuse albedo pd (sRGB)")
     for ax, img, cmap, label, name in ((b, ps, "magma", "ps", "(b) specular reflectance ps"),
                                        (c, rough, "gray", f"{rough_name} [rad]", f"(c) roughness {rough_name}")):
-        cm = plt.get_cmap(cmap).with_extremes(bad="white")
+        cm = _cmap(cmap)
         finite = img[np.isfinite(img)]
         hi = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
         im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=0.0, vmax=hi)
@@ -235,7 +235,6 @@ def comparison_figure(path, image: np.ndarray, reference: np.ndarray, labels=("r
     exposure (the reference's), and the luminance difference `image - reference` in
     percent of the reference's 99th-percentile luminance, with a colour bar.
     NaN pixels (off the object) are white. Written to PNG `path`."""
-    plt = _pyplot()
     if image.shape != reference.shape:
         raise ValueError(f"reference: {reference.shape[1]}x{reference.shape[0]} pixels, "
                          f"the image {image.shape[1]}x{image.shape[0]}")
@@ -248,11 +247,12 @@ def comparison_figure(path, image: np.ndarray, reference: np.ndarray, labels=("r
     limit = float(np.nanpercentile(np.abs(diff), 99.5)) if np.isfinite(diff).any() else 1.0
     limit = limit if limit > 0 else 1.0
     aspect = image.shape[1] / image.shape[0]
-    fig, axes = plt.subplots(1, 3, figsize=(3 * 3.4 * min(aspect, 2.5) + 1.2, 3.8))
+    fig = _figure(figsize=(3 * 3.4 * min(aspect, 2.5) + 1.2, 3.8))
+    axes = fig.subplots(1, 3)
     for ax, img, label in zip(axes, (image, reference), labels):
         ax.imshow(to_srgb8(img, exposure=exposure, background=(255, 255, 255)))
         ax.set_title(label)
-    cm = plt.get_cmap("RdBu_r").with_extremes(bad="white")
+    cm = _cmap("RdBu_r")
     im = axes[2].imshow(np.ma.masked_invalid(diff), cmap=cm, vmin=-limit, vmax=limit)
     fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, label="% of reference (99th pct.)")
     axes[2].set_title(f"{labels[0]} - {labels[1]}")
