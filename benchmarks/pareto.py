@@ -203,10 +203,26 @@ def measure(scene: dict, s: Setting, repeats: int, tmp: str) -> dict:
     return out
 
 
+def _source() -> str:
+    """Commit of the code that ran, and files changed against it (if any)."""
+    import subprocess
+
+    def git(*a):
+        return subprocess.run(["git", *a], cwd=os.path.dirname(HERE), capture_output=True, text=True, timeout=30).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no", "--", "jaxrefl", "data_synth", "benchmarks")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown (no git)"
+    changed = [line[3:] for line in dirty.splitlines()]
+    return (commit or "unknown") + (f" with uncommitted changes to {', '.join(changed)}" if changed else " (clean)")
+
+
 def run_bench(scene_labels, sweep, cfg, log=print) -> dict:
     """Every setting of `sweep` on every scene of `scene_labels`; returns the raw results
     (Pareto fronts marked) for `write_outputs`."""
-    t0, load0 = time.perf_counter(), os.getloadavg()
+    t0, load0, started, source = time.perf_counter(), os.getloadavg(), time.strftime("%Y-%m-%dT%H:%M:%S"), _source()
     scenes = []
     with tempfile.TemporaryDirectory() as tmp:
         for label in scene_labels:
@@ -229,7 +245,7 @@ def run_bench(scene_labels, sweep, cfg, log=print) -> dict:
             scenes.append({"scene": label, "points": sc["scan"].n_points, "lights": sc["lights"],
                            "describe": sc["describe"], "render_s": sc["render_s"],
                            "mc_stderr": sc.get("mc_stderr"), "rows": rows})
-    return {"command": cfg.command, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    return {"command": cfg.command, "date": started, "source": source,
             "machine": f"{os.cpu_count()} cores, {platform.platform()}, Python {platform.python_version()}",
             "load_start": list(load0), "load_end": list(os.getloadavg()), "wall_s": time.perf_counter() - t0,
             "repeats": cfg.repeats, "scenes": scenes}
@@ -246,7 +262,8 @@ def markdown(res) -> str:
     import jax
 
     lines = ["# Speed against error: every method on Objects A-E", "",
-             f"- Run: `{res['command']}` on {res['date']}, {res['wall_s']:.0f} s wall; machine: {res['machine']}, "
+             f"- Run: `{res['command']}`, started {res['date']}, {res['wall_s']:.0f} s wall (scene rendering "
+             f"included); code: commit {res.get('source', 'unknown')}; machine: {res['machine']}, "
              f"jax {jax.__version__}.",
              f"- Load average (1/5/15 min) at start {'/'.join(f'{x:.2f}' for x in res['load_start'])}, at end "
              f"{'/'.join(f'{x:.2f}' for x in res['load_end'])}: the 2 cores are shared with other jobs, so seconds "
