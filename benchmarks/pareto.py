@@ -208,10 +208,11 @@ def _source() -> str:
     import subprocess
 
     def git(*a):
-        return subprocess.run(["git", *a], cwd=os.path.dirname(HERE), capture_output=True, text=True, timeout=30).stdout.strip()
+        return subprocess.run(["git", *a], cwd=os.path.dirname(HERE), capture_output=True, text=True,
+                              timeout=30).stdout
 
     try:
-        commit = git("rev-parse", "--short", "HEAD")
+        commit = git("rev-parse", "--short", "HEAD").strip()
         dirty = git("status", "--porcelain", "--untracked-files=no", "--", "jaxrefl", "data_synth", "benchmarks")
     except (OSError, subprocess.SubprocessError):
         return "unknown (no git)"
