@@ -11,7 +11,7 @@ from data_synth.objects import fold_coordinate
 from data_synth.pathtrace import Material, PathTracer
 from data_synth.scans import make_scan
 from jaxrefl.formfactors import form_factors
-from jaxrefl.local import estimate_local
+from jaxrefl.local import estimate_local, prepare_rows
 from jaxrefl.mesh import area_normal_sums
 from jaxrefl.radiosity import (RadiosityOptions, direct_irradiance, estimate_radiosity, inverse_radiosity,
                                light_configs, solve_radiosity)
@@ -249,3 +249,76 @@ def test_cli_estimate_radiosity(tmp_path):
     assert_one_line_error(jaxrefl("estimate", scan, "--method", "radiosity", "--rays", 0,
                                   "--out", tmp_path / "x.npz"), "rays")
     assert not (tmp_path / "x.npz").exists()
+
+
+def _reference_inverse(ff, configs, e_cfg, radiance, observed, e_obs, pd0, correction, free, iters=5000):
+    """The inverse fixed point by its definition: plain iteration, dense products, no acceleration."""
+    f = ff.matrix.toarray()
+    n, m = observed.shape
+    to_row = sp.csr_matrix((np.ones(len(ff.rows)), (ff.rows, np.arange(len(ff.rows)))), shape=(n, len(ff.rows)))
+    b_obs = np.pi * np.where(observed[..., None], radiance, 0.0)
+    fit = free & observed.any(1)
+    pd, b = pd0.copy(), pd0[:, None, :] * e_cfg[..., None]
+    for _ in range(iters):
+        inter = np.einsum("uv,vcj->ucj", f, b)
+        at = np.take_along_axis(inter, np.clip(configs.index, 0, None)[..., None], axis=1)
+        at = at + (to_row @ (correction[..., None] * pd[ff.cols][:, None, :]).reshape(-1, m * 3)).reshape(n, m, 3)
+        h = e_obs[..., None] + at
+        num = np.sum(np.where(observed[..., None], b_obs * h, 0.0), 1)
+        den = np.sum(np.where(observed[..., None], h * h, 0.0), 1)
+        new = np.where(fit[:, None], num / np.where(den > 0, den, 1.0), pd0)
+        b_new = new[:, None, :] * (e_cfg[..., None] + inter)
+        done = np.abs(new - pd).max() < 1e-15 and np.abs(b_new - b).max() <= 1e-15 * np.abs(b).max()
+        pd, b = new, b_new
+        if done:
+            break
+    return pd, np.where(free[:, None, None], at, 0.0)
+
+
+def test_inverse_radiosity_per_point_lights_matches_plain_iteration():
+    """The host-driven Anderson solve with threaded sparse products (and the first-bounce
+    correction read from the configurations' irradiance) against the definition: plain
+    fixed-point iteration with dense products and the correction's binned part ray-cast
+    on its own. Also: a warm start returns the same fixed point at once, and a region
+    solve on the configurations its points use equals the solve on all of them."""
+    from jaxrefl.classify import T_DIFF
+    from jaxrefl.radiosity import first_bounce_correction, restrict_configs
+
+    scan, _ = make_scan("A", resolution=16, lights=[0, 20, 40])
+    caster = RayCaster(scan.vertices, scan.faces)
+    ff = form_factors(scan.vertices, scan.faces, scan.normals, rays=32, caster=caster, cache=False)
+    rows = prepare_rows(scan, caster=caster)
+    configs = light_configs(scan.light_pos, scan.n_points, 0.1)
+    e_cfg = direct_irradiance(caster, scan.normals, configs.positions, scan.intensities()[configs.light])
+    cast = first_bounce_correction(caster, ff, scan.normals, scan.light_pos, configs, scan.intensities())
+    corr = first_bounce_correction(caster, ff, scan.normals, scan.light_pos, configs, scan.intensities(),
+                                   e_cfg=e_cfg)
+    np.testing.assert_allclose(corr, cast, rtol=0, atol=1e-12)
+    assert np.abs(corr).max() > 0
+    sample = rows["use"] & (rows["classes"] == T_DIFF)
+    y, e = rows["y"], rows["e"]
+    pd0 = np.full((scan.n_points, 3), 0.5)
+    everyone = np.ones(scan.n_points, bool)
+    inv = inverse_radiosity(ff, configs, e_cfg, y, sample, e, pd0, correction=corr, tol=1e-13)
+    ref_pd, ref_inter = _reference_inverse(ff, configs, e_cfg, y, sample, e, pd0, corr, everyone)
+    np.testing.assert_allclose(inv.pd, ref_pd, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(inv.interreflected, ref_inter, rtol=1e-9, atol=1e-12 * np.abs(ref_inter).max())
+    assert np.abs(ref_inter).max() > 0 and inv.iterations < 60
+    again = inverse_radiosity(ff, configs, e_cfg, y, sample, e, pd0, correction=corr, tol=1e-13,
+                              init=(inv.pd, inv.radiosity))
+    assert again.iterations <= 2
+    np.testing.assert_allclose(again.pd, inv.pd, rtol=1e-12)
+    # a region: its points' pd from only the configurations they use; the rest keep pd0
+    region = scan.vertices[:, 1] > np.median(scan.vertices[:, 1])
+    sub = restrict_configs(configs, region)
+    assert 0 < len(sub.positions) < len(configs.positions) and np.all(sub.index[~region] == -1)
+    e_sub = direct_irradiance(caster, scan.normals, sub.positions, scan.intensities()[sub.light])
+    corr_sub = first_bounce_correction(caster, ff, scan.normals, scan.light_pos, sub, scan.intensities(),
+                                       e_cfg=e_sub, points=region)
+    part = inverse_radiosity(ff, sub, e_sub, y, sample, e, pd0, correction=corr_sub, tol=1e-13, points=region)
+    full = inverse_radiosity(ff, configs, e_cfg, y, sample, e, pd0, correction=corr, tol=1e-13, points=region)
+    np.testing.assert_allclose(part.pd, full.pd, rtol=1e-9)
+    np.testing.assert_array_equal(part.pd[~region], pd0[~region])
+    np.testing.assert_allclose(part.interreflected, full.interreflected, rtol=1e-9, atol=1e-15)
+    ref_pd, _ = _reference_inverse(ff, configs, e_cfg, y, sample, e, pd0, corr, region)
+    np.testing.assert_allclose(part.pd, ref_pd, rtol=1e-9, atol=1e-12)
