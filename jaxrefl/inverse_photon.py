@@ -25,10 +25,11 @@ Outer iteration `k` (all points at once, `jax.lax.scan` inside one `jit`):
 1. step (a): `pd` per channel by least squares over the point's `T_diff` samples
    (all its samples when it has none) with `D` added to the irradiance and the
    current specular part taken off (closed form, clipped to `[0, 1]`);
-2. step (b): `ps`, `alpha` from the `T_spec` and `T_none` samples with `pd`
-   fixed and `Q` held at the current `alpha`: `ps` projected out (least squares,
-   `0 <= ps <= PS_MAX`) and `ln alpha` by a 16-value grid then safeguarded Newton
-   steps (`solver='lm'`, `lm.gauss_newton_1d`), or both by a downhill simplex over
+2. step (b), on the points with lobe evidence only (a `T_spec` sample and two
+   step (b) samples): `ps`, `alpha` from the `T_spec` and `T_none` samples with
+   `pd` fixed and `Q` held at the current `alpha`: `ps` projected out (least
+   squares, `0 <= ps <= PS_MAX`) and `ln alpha` by a 16-value grid then
+   safeguarded Newton steps (`solver='lm'`, `lm.gauss_newton_1d`), or both by a downhill simplex over
    `(ln ps, ln alpha)` as the paper (`solver='simplex'`, optimistix NelderMead,
    vmapped over the points). Only lobes the data pin down (the identifiability
    test below) are taken; the others get the mean of those in their window, so
@@ -159,48 +160,68 @@ def _step_a(pd, ps, rho, r, d, q):
     return jnp.clip(new, 0.0, 1.0), den
 
 
-def _spec_row(rho, s, e, ci, co, th, q, w2, b):
-    """Projected cost of one row at `ln alpha = rho` and its `ps >= 0`
-    (`s`, `q`, `w2` `(M, 3)`; the rest `(M,)`; `b` the step (b) mask)."""
-    k = brdf.ward_specular(1.0, rho, ci, co, th)
-    g = jnp.where(b[:, None], e[:, None] * k[:, None] + q, 0.0)
-    sv = jnp.where(b[:, None], s, 0.0)
-    sgg = jnp.sum(w2 * g * g)
-    ssg = jnp.sum(w2 * sv * g)
-    ps = jnp.where(sgg > 0, jnp.maximum(ssg, 0.0) / jnp.where(sgg > 0, sgg, 1.0), 0.0)
-    return jnp.sum(w2 * (sv - ps * g) ** 2), ps
-
-
 def _spec_args(pd, r, d, q):
     s = r["y"] - pd[:, None, :] / jnp.pi * (r["e"][..., None] + d)
     return (s, r["e"], r["cos_i"], r["cos_o"], r["theta_r"], q, r["w2"], r["b"])
 
 
-def _row_cost(rho, *args):
-    return _spec_row(rho, *args)[0]
+def _spec_coefficients(args):
+    """Per-row sums of step (b)'s projected cost over the channels.
+
+    With `g = E k + Q` on the step (b) samples (`k` the unit lobe `(M,)`) the cost
+    `sum w (s - ps g)^2` is quadratic in `k`; the sums `A = E sum_c w s`,
+    `B = E^2 sum_c w`, `C = 2 E sum_c w Q` `(N, M)` and `c_sq`, `c_qq`, `c_ss` `(N,)`
+    are taken once per step (b), and each cost evaluation then needs only `k`."""
+    s, e, ci, co, th, q, w2, b = args
+    bm = b[..., None]
+    sv, qv = jnp.where(bm, s, 0.0), jnp.where(bm, q, 0.0)
+    a_m = e * jnp.sum(w2 * sv, -1)
+    b_m = jnp.where(b, e * e * jnp.sum(w2, -1), 0.0)
+    c_m = 2.0 * e * jnp.sum(w2 * qv, -1)
+    sums = tuple(jnp.sum(w2 * x * y, (-2, -1)) for x, y in ((sv, qv), (qv, qv), (sv, sv)))
+    return (ci, co, th, a_m, b_m, c_m) + sums
 
 
-_cost_rows = jax.vmap(_row_cost)
-_grad_rows = jax.vmap(jax.value_and_grad(_row_cost))
-_hess_rows = jax.vmap(jax.hessian(_row_cost))
+def _spec_row(rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, c_ss):
+    """Projected cost of one row at `ln alpha = rho` and its `ps >= 0`, from the
+    row's `_spec_coefficients`: `ssg = k.A + c_sq`, `sgg = k^2.B + k.C + c_qq`,
+    cost `c_ss - 2 ps ssg + ps^2 sgg` (a difference of large numbers: its rounding
+    error is ~1e-7 of the signal's chi^2 in float32, far below the noise's)."""
+    k = brdf.ward_specular(1.0, rho, ci, co, th)
+    ssg = jnp.sum(k * a_m) + c_sq
+    sgg = jnp.sum(k * k * b_m + k * c_m) + c_qq
+    ok = sgg > 0
+    ps = jnp.where(ok, jnp.maximum(ssg, 0.0) / jnp.where(ok, sgg, 1.0), 0.0)
+    return jnp.maximum(c_ss - ps * (2.0 * ssg - ps * sgg), 0.0), ps
+
+
+def _row_derivatives(rho, *coef):
+    """Cost and its first and second derivative in `ln alpha` (forward mode: one
+    variable, so a second-order `jvp` is the cheapest way to both)."""
+    first = lambda r: jax.jvp(lambda x: _spec_row(x, *coef)[0], (r,), (jnp.ones_like(r),))  # noqa: E731
+    (cost, g), (_, h) = jax.jvp(first, (rho,), (jnp.ones_like(rho),))
+    return cost, g, h
+
+
+_cost_rows = jax.vmap(lambda rho, *coef: _spec_row(rho, *coef)[0])
+_derivative_rows = jax.vmap(_row_derivatives)
 
 
 def _step_b_lm(rho0, args, steps):
-    """`(ps, rho)` `(N,)` minimising the projected cost: grid start, then Newton."""
+    """`(ps, rho)` `(N,)` minimising the projected cost: the best of `rho0` and a
+    16-value grid over `ln ALPHA_RANGE`, then safeguarded Newton steps."""
     lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
+    coef = _spec_coefficients(args)
     grid = jnp.linspace(lo, hi, _GRID, dtype=rho0.dtype)
-    costs = jax.vmap(lambda g: _cost_rows(jnp.full_like(rho0, g), *args))(grid)  # (G, N)
-    c0 = _cost_rows(rho0, *args)
-    best = jnp.argmin(costs, axis=0)
-    start = jnp.where(c0 <= jnp.min(costs, axis=0), rho0, grid[best])
+    costs = jax.vmap(lambda g: _cost_rows(jnp.full_like(rho0, g), *coef))(grid)  # (G, N)
+    start = jnp.where(_cost_rows(rho0, *coef) <= jnp.min(costs, axis=0), rho0, grid[jnp.argmin(costs, axis=0)])
 
     def evaluate(rho):
-        cost, g = _grad_rows(rho, *args)
-        h = _hess_rows(rho, *args)
+        cost, g, h = _derivative_rows(rho, *coef)
         return cost, 0.5 * g, 0.5 * h
 
     rho, _ = gauss_newton_1d(evaluate, start, steps, lo, hi, radius=0.5)
-    _, ps = jax.vmap(_spec_row)(rho, *args)
+    _, ps = jax.vmap(_spec_row)(rho, *coef)
     return ps, rho
 
 
@@ -292,11 +313,14 @@ def _to_obs(x, index):
 
 
 @partial(jax.jit, static_argnames=("static", "n_iter", "solver", "steps"))
-def _block(data, static, index, rows, reach, theta, best, n_iter, solver, steps, damping, min_snr):
-    """`n_iter` outer iterations from `theta = (pd, ps, rho)`; `best = (theta, cost)`.
+def _block(data, static, index, rows, lobe_rows, reach, theta, best, n_iter, solver, steps, damping, min_snr):
+    """`n_iter` outer iterations from `theta = (pd, ps, rho)`; `best = (theta, cost)`;
+    `lobe_rows` `(K,)` int32 the points with lobe evidence (the only ones step (b) fits).
 
     **Returns:** `(theta, best, history)`, `history = (cost, mean_abs)` `(n_iter,)`
     each: the image difference of the estimate each iteration started from."""
+
+    spec_rows = {k: rows[k][lobe_rows] for k in ("lobe", "n_b", "joint")}
 
     def body(carry, _):
         (pd, ps, rho), (best_theta, best_cost) = carry
@@ -307,15 +331,19 @@ def _block(data, static, index, rows, reach, theta, best, n_iter, solver, steps,
         best_cost = jnp.where(better, cost, best_cost)
         pd_new, _ = _step_a(pd, ps, rho, rows, d, q)
         pd = pd + damping * (pd_new - pd)
-        args = _spec_args(pd, rows, d, q)
+        # Step (b) only where a lobe can be measured at all (the rows `lobe_rows`).
+        args = tuple(a[lobe_rows] for a in _spec_args(pd, rows, d, q))
         if solver == "lm":
-            ps_new, rho_new = _step_b_lm(rho, args, steps)
+            ps_k, rho_k = _step_b_lm(rho[lobe_rows], args, steps)
         else:
-            ps_new, rho_new = _step_b_simplex(ps, rho, args, steps)
-        ps_new = jnp.minimum(ps_new, PS_MAX)
+            ps_k, rho_k = _step_b_simplex(ps[lobe_rows], rho[lobe_rows], args, steps)
+        ps_k = jnp.minimum(ps_k, PS_MAX)
         # Lobes the data pin down move; the others take the mean of those in their window.
-        var_ps, var_rho, chi2 = _spec_information(ps_new, rho_new, args, pd, d, rows["joint"])
-        known = _identifiable(ps_new, var_ps, var_rho, chi2, rows, min_snr)
+        var_ps, var_rho, chi2 = _spec_information(ps_k, rho_k, args, pd[lobe_rows], d[lobe_rows],
+                                                  spec_rows["joint"])
+        known = jnp.zeros(rho.shape, bool).at[lobe_rows].set(
+            _identifiable(ps_k, var_ps, var_rho, chi2, spec_rows, min_snr))
+        ps_new, rho_new = ps.at[lobe_rows].set(ps_k), rho.at[lobe_rows].set(rho_k)
         ln_ps = jnp.log(jnp.maximum(ps_new, 1e-12))
         ps_new = jnp.where(known, ps_new, jnp.exp(_window_mean(ln_ps, known, reach, jnp.log(jnp.maximum(ps, 1e-12)))))
         rho_new = jnp.where(known, rho_new, _window_mean(rho_new, known, reach, rho))
@@ -395,6 +423,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(a_mask), b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe),
                 joint=jnp.asarray(~has_diff),
                 n_b=jnp.asarray(b_mask.sum(1)))
+    lobe_rows = jnp.asarray(np.flatnonzero(lobe), jnp.int32)
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
     reach = _window_reach(adjacency, options.window)
     configs = light_configs(scan.light_pos, scan.n_points, options.light_bin)
@@ -420,7 +449,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     while done < options.iterations:
         n_iter = min(options.check_every, options.iterations - done)
         t0 = time.perf_counter()
-        theta, best, (c, m) = _block(replay.data, replay.static, index, rows, reach, theta, best, n_iter,
+        theta, best, (c, m) = _block(replay.data, replay.static, index, rows, lobe_rows, reach, theta, best, n_iter,
                                      options.solver, options.steps, options.damping, options.min_snr)
         costs += np.asarray(c).tolist()
         mads += np.asarray(m).tolist()
