@@ -55,6 +55,42 @@ def test_convex_object_matches_truth_and_method_one(convex, solver):
     assert np.all(est.std_ps[~measured] == np.inf) and np.all(np.isfinite(est.std_ps[measured]))
 
 
+def test_step_b_cost_from_channel_sums_equals_direct_sum():
+    """Step (b)'s cost from the per-row channel sums is the direct weighted sum of
+    squares at the projected ps, and the step finds the minimum of a noise-free lobe."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxrefl import brdf
+    from jaxrefl import inverse_photon as ip
+
+    jax.config.update("jax_enable_x64", True)
+    rng = np.random.default_rng(3)
+    n, m = 64, 9
+    ci, co = rng.uniform(0.2, 1.0, (2, n, m))
+    th = rng.uniform(0.0, 0.4, (n, m))
+    e = rng.uniform(0.5, 2.0, (n, m))
+    q = rng.uniform(0.0, 0.3, (n, m, 3))
+    w2 = rng.uniform(0.5, 2.0, (n, m, 3))
+    b = rng.random((n, m)) < 0.8
+    ps_true, rho_true = rng.uniform(0.1, 0.6, n), np.log(rng.uniform(0.03, 0.3, n))
+    k = np.asarray(brdf.ward_specular(1.0, rho_true[:, None], ci, co, th))
+    s = ps_true[:, None, None] * (e[..., None] * k[..., None] + q)
+    args = tuple(jnp.asarray(x) for x in (s, e, ci, co, th, q, w2, b))
+    rho = jnp.asarray(np.log(rng.uniform(0.01, 0.5, n)))
+    cost, ps = jax.vmap(ip._spec_row)(rho, *ip._spec_coefficients(args))
+    kk = np.asarray(brdf.ward_specular(1.0, np.asarray(rho)[:, None], ci, co, th))
+    g = np.where(b[..., None], e[..., None] * kk[..., None] + q, 0.0)
+    sv = np.where(b[..., None], s, 0.0)
+    ps_direct = np.maximum((w2 * sv * g).sum((1, 2)), 0) / (w2 * g * g).sum((1, 2))
+    direct = (w2 * (sv - ps_direct[:, None, None] * g) ** 2).sum((1, 2))
+    np.testing.assert_allclose(np.asarray(ps), ps_direct, rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(cost), direct, rtol=1e-7, atol=1e-10 * (w2 * sv * sv).sum((1, 2)).max())
+    ps_fit, rho_fit = ip._step_b_lm(rho, args, 30)
+    np.testing.assert_allclose(np.asarray(rho_fit), rho_true, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(ps_fit), ps_true, rtol=1e-5)
+
+
 def test_options_are_checked():
     with pytest.raises(ValueError, match="solver"):
         PhotonOptions(solver="bfgs")
