@@ -11,6 +11,7 @@ from pathlib import Path
 
 import nbclient
 import nbformat
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -21,7 +22,25 @@ TIMEOUT_S = 300  # per cell; each notebook takes about a minute on two cores
 def test_notebooks_exist():
     names = {p.name for p in NOTEBOOKS}
     assert {"01_quick_start.ipynb", "02_light_selection.ipynb",
-            "03_interreflections_object_E.ipynb", "05_relighting.ipynb"} <= names, names
+            "03_interreflections_object_E.ipynb", "04_photons_iterations.ipynb", "05_relighting.ipynb"} <= names, names
+
+
+def test_figure_writers_leave_the_backend_alone(tmp_path):
+    """jaxrefl.render's figure writers draw off pyplot, so a notebook's inline backend stays
+    selected after them (they used to switch matplotlib to Agg)."""
+    import matplotlib
+
+    from jaxrefl import render
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")
+    try:
+        image = np.random.default_rng(0).random((12, 16, 3))
+        render.comparison_figure(str(tmp_path / "cmp.png"), image, 1.1 * image)
+        assert matplotlib.get_backend() == "svg"
+        assert (tmp_path / "cmp.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    finally:
+        matplotlib.use(before)
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
