@@ -270,27 +270,31 @@ def calibrate(rows, bins: int = 8, log=None) -> auto.ErrorModel:
                 label = f"a, b = {values[q][mi]}, noise scale {scale}"
             elif k == "radiosity":
                 def pm(t, g, s, n, pk):
-                    return np.median(np.sqrt(noise(n, scale) ** 2 + (t[0] * g + t[1] * s) ** 2))
+                    return np.median(np.sqrt(noise(n, scale) ** 2 + (t[0] * g + t[1] * s) ** 2 + t[2] ** 2))
 
-                t, loss = _fit(groups, pm, [0.5, 0.5])
+                t, loss = _fit(groups, pm, [0.5, 0.5, 0.003])
                 values[q][mi] = (round(float(t[0]), 3), round(float(t[1]), 3))
-                label = f"a, b = {values[q][mi]}"
+                extra[f"radiosity_noise_{q}"] = round(float(t[2]), 4)
+                label = f"a, b = {values[q][mi]}, noise {extra[f'radiosity_noise_{q}']}"
             else:
                 # Method III models the light a lobe carries (no term in s); its Monte Carlo error
-                # grows with the interreflected light it estimates and with k (few photons per point).
+                # grows with the interreflected light it estimates and with k (few photons per point),
+                # and it refits every point from photon-replayed images: noise ~ spread * k everywhere.
                 floor = extra.get("photon_noise", 0.005)
                 free_floor = q == "pd"
 
                 def pm(t, g, s, n, pk, free_floor=free_floor, floor=floor):
-                    f = t[2] if free_floor else floor
-                    return np.median(np.sqrt(noise(n, scale) ** 2 + ((t[0] + t[1] * pk) * g) ** 2 + f**2))
+                    f = t[3] if free_floor else floor
+                    return np.median(np.sqrt(noise(n, scale) ** 2 + ((t[0] + t[1] * pk) * g) ** 2 + f**2
+                                             + (t[2] * pk) ** 2))
 
-                t, loss = _fit(groups, pm, [0.1, 0.5] + ([floor] if free_floor else []))
+                t, loss = _fit(groups, pm, [0.1, 0.5, 0.01] + ([floor] if free_floor else []))
                 values[q][mi] = (round(float(t[0]), 3), 0.0)
                 extra[f"photon_mc_{q}"] = round(float(t[1]), 3)
+                extra[f"photon_spread_{q}"] = round(float(t[2]), 4)
                 if free_floor:
-                    extra["photon_noise"] = round(float(t[2]), 4)
-                label = f"a {values[q][mi][0]}, mc {extra[f'photon_mc_{q}']}"
+                    extra["photon_noise"] = round(float(t[3]), 4)
+                label = f"a {values[q][mi][0]}, mc {extra[f'photon_mc_{q}']}, spread {extra[f'photon_spread_{q}']}"
             line = f"{q} {k}: {label} (loss {loss:.3f}, {len(groups)} bins)"
             print("  calibrated " + line, flush=True)
             if log is not None:
@@ -436,7 +440,8 @@ def report(rows, args, model, seconds, calibration=None) -> str:
         lines += [f"- {line}" for line in calibration["log"]]
     lines += ["", f"Method III: bias = (a + photon_mc k) g with photon_mc pd {model.photon_mc_pd}, ps "
               f"{model.photon_mc_ps} (k = sqrt(points / photons per light configuration)), floor photon_noise "
-              f"{model.photon_noise}. Noise scale pd {model.noise_scale_pd}, ps {model.noise_scale_ps}; unknown_pd "
+              f"{model.photon_noise} and spread k (pd {model.photon_spread_pd}, ps {model.photon_spread_ps}) in "
+              f"quadrature. Method II's own noise pd {model.radiosity_noise_pd}, ps {model.radiosity_noise_ps}. Noise scale pd {model.noise_scale_pd}, ps {model.noise_scale_ps}; unknown_pd "
               f"{model.unknown_pd}, unknown_ps {model.unknown_ps}.", ""]
     return "\n".join(lines)
 

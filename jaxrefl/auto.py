@@ -23,24 +23,29 @@ and method `k` the predicted relative error of pd (likewise ps) is
     e_k = sqrt(noise^2 + bias_k^2),  bias_k = a_k g + b_k s  (Methods I, II)
 
 Method I leaves all the interreflected light in its fit (`a_I`, `b_I`), Method II
-removes the diffuse part but not what a specular lobe carries (`b_II`), Method III
-removes both at the cost of its Monte Carlo error, which grows with the light it
-estimates and falls with the photons each light configuration gets:
-`bias_III = (a_III + c k) g`, `k = sqrt(points / photons per configuration)`, plus
-a floor in quadrature.
+removes the diffuse part but not what a specular lobe carries (`b_II`) and adds
+its own noise (a floor in quadrature), Method III removes both at the cost of its
+Monte Carlo error, which grows with the light it estimates and falls with the
+photons each light configuration gets: `bias_III = (a_III + c k) g`,
+`k = sqrt(points / photons per configuration)`, plus a floor and `spread k` (noise
+at every point) in quadrature.
 
-**Choice**: methods are ranked by cost (local < radiosity < photon). A point
+**Choice**: methods are ranked by cost (local < radiosity < photon, as measured
+on Objects A-D at the benchmark's settings: `RESULTS_auto.md`). A point
 *needs a global method* where Method I's predicted error exceeds
 `max(target, (1 + tolerance) * best)`, `best` the lowest predicted error of any
 available method (a target below what any method reaches asks only for the best
 reachable, within the tolerance). Regions are the connected components (mesh
 edges) of that mask with at least `min_region` points, dilated by `rings`
 rings; per region the cheapest method whose predicted median errors meet the
-same rule is chosen. The most capable method any region needs is run on the
-whole object (light arrives from everywhere) and its result is used inside the
-regions only; everywhere else Method I's result stands (it is what was fitted
-to measure the scene, and where interreflection is negligible it is at least as
-accurate: `RESULTS_auto.md`).
+same rule is chosen. The most capable method any region needs is run: Method
+III on the whole object, Method II for the regions' points only (the rest of
+the object enters its radiosity with Method I's albedo; its cost is the light
+configurations the regions' observations use). Its result is used inside the
+regions and at the points outside them where it is predicted to beat Method I
+at no extra cost (`_extension`); everywhere else Method I's result stands (it
+is what was fitted to measure the scene, and where interreflection is
+negligible it is at least as accurate: `RESULTS_auto.md`).
 
 Method III (`jaxrefl.inverse_photon`) is imported only when needed; it fits the
 Ward model, so it is a candidate only with `local.model == 'ward'` and when the
@@ -79,22 +84,29 @@ class ErrorModel:
     (`METHODS` order). `pd` and `ps` hold `(a, b)`: `bias = a g + b s` for Methods I and
     II; Method III's `bias = (a + photon_mc * k) g` (its Monte Carlo error grows with the
     interreflected light it estimates and with `k = sqrt(points / photons per light
-    configuration)`), `b` unused (0). `noise` is `noise_scale_pd` (`_ps`) times Method
+    configuration)`), `b` unused (0), and its Monte Carlo noise `photon_spread * k` at every
+    point (it refits all of them from photon-replayed images) adds to the floor
+    `photon_noise` in quadrature; Method II's own noise (form-factor rays, light
+    configurations, its separate specular fit) is `radiosity_noise`. `noise` is `noise_scale_pd` (`_ps`) times Method
     I's relative standard deviation where the point has its own estimate, else
     `unknown_pd` (`unknown_ps`: the error of a value filled from neighbours), at most 1.
     Fitted by `benchmarks/auto_bench.py --calibrate` (`RESULTS_auto.md`)."""
 
     # `python3 -m benchmarks.auto_bench --calibrate --repeats 0 --seed 0 --tilt 30`: Objects A-D, V,
     # E (diffuse, glossy; Ward and Torrance-Sparrow), resolution 32; see RESULTS_auto.md.
-    pd: tuple = ((0.799, 2.513), (0.0, 2.385), (0.362, 0.0))
-    ps: tuple = ((0.0, 0.0), (0.0, 0.0), (0.727, 0.0))
+    pd: tuple = ((0.799, 2.513), (0.0, 2.368), (0.362, 0.0))
+    ps: tuple = ((0.0, 0.0), (0.0, 0.0), (0.771, 0.0))
     photon_mc_pd: float = 0.441
-    photon_mc_ps: float = 2.628
+    photon_mc_ps: float = 1.844
     noise_scale_pd: float = 0.543
     noise_scale_ps: float = 0.344
     unknown_pd: float = 0.132
     unknown_ps: float = 0.03
     photon_noise: float = 0.0074
+    photon_spread_pd: float = 0.0
+    photon_spread_ps: float = 0.0388
+    radiosity_noise_pd: float = 0.0054
+    radiosity_noise_ps: float = 0.0116
 
     def coefficients(self, quantity: str, method: str) -> tuple[float, float]:
         return getattr(self, quantity)[METHODS.index(method)]
@@ -273,7 +285,9 @@ def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHOD
         for q in ("pd", "ps"):
             noise = model.noise(q, getattr(measures, f"rel_std_{q}"))
             bias = model.bias(q, k, measures.gain_diffuse, measures.gain_specular, measures.photon_k)
-            floor = model.photon_noise if k == "photon" else 0.0
+            floor = getattr(model, f"radiosity_noise_{q}") if k == "radiosity" else 0.0
+            if k == "photon":  # Monte Carlo noise at every point, interreflection or not
+                floor = np.hypot(model.photon_noise, getattr(model, f"photon_spread_{q}") * measures.photon_k)
             out[k][q] = np.sqrt(noise**2 + bias**2 + floor**2)
     return out
 
@@ -286,13 +300,15 @@ class Plan:
     """`method` `(N,)` index into `METHODS` used at each point; `run` the global method
     to run (None: Method I alone); `regions` one dict per region; `needs_global` `(N,)`
     the mask before regions were formed; `predicted` per-method scene medians and
-    those of the plan."""
+    those of the plan; `extended` `(N,)` points outside the regions that take the global
+    method's result as well (`_extension`)."""
 
     method: np.ndarray
     run: str | None
     regions: list
     needs_global: np.ndarray
     predicted: dict
+    extended: np.ndarray | None = None
 
 
 def _meets(errors: dict, candidates, target: float, tolerance: float, reduce=lambda e: e):
@@ -309,6 +325,17 @@ def _meets(errors: dict, candidates, target: float, tolerance: float, reduce=lam
 
 def _median(e):
     return float(np.median(e))
+
+
+def _shortfall(errors: dict, candidates, method: str, core, options) -> float:
+    """Largest ratio over pd and ps of `method`'s median error in `core` to the limit
+    `max(target, (1 + tolerance) best)` (<= 1: within it)."""
+    out = 0.0
+    for q in ("pd", "ps"):
+        best = min(_median(errors[k][q][core]) for k in candidates)
+        limit = max(options.target_error, (1.0 + options.tolerance) * best)
+        out = max(out, _median(errors[method][q][core]) / max(limit, 1e-12))
+    return out
 
 
 def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), available=None) -> Plan:
@@ -345,7 +372,9 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
         core = pts & seeds  # the ring is a margin, not evidence: decide on the points that needed it
         ok = _meets(errors, available, options.target_error, options.tolerance,
                     reduce=lambda e, core=core: _median(e[core]))
-        choice = next((k for k in available if ok[k]), available[-1])
+        choice = next((k for k in available if ok[k]), None)
+        if choice is None:  # none is within the tolerance in both pd and ps: the one closest to it
+            choice = min(available, key=lambda k, core=core: _shortfall(errors, available, k, core, options))
         wanted.append(choice)
         regions.append({
             "region": r, "points": int(pts.sum()), "seed_points": int((pts & seeds).sum()),
@@ -358,11 +387,15 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     if run == "local":
         run = None
     for reg, choice in zip(regions, wanted):
-        # The most capable method any region needs runs on the whole object anyway: regions that
-        # would make do with less take its result (no extra cost), unless that is Method I.
+        # The most capable method any region needs runs anyway: regions that would make do
+        # with less take its result, unless that is Method I.
         used = choice if choice == "local" or run is None else run
         reg["method"] = used
         method[labels == reg["region"]] = METHODS.index(used)
+    extended = np.zeros(n, bool)
+    if run is not None:
+        extended = _extension(scan, errors, run, method, options)
+        method[extended] = METHODS.index(run)
 
     def plan_errors(q):
         e = np.choose(method, [errors.get(k, {q: np.zeros(n)})[q] for k in METHODS])
@@ -370,7 +403,26 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
 
     predicted = {k: {q: _median(errors[k][q]) for q in ("pd", "ps")} for k in available}
     predicted["plan"] = {q: plan_errors(q) for q in ("pd", "ps")}
-    return Plan(method, run, regions, needs, predicted)
+    return Plan(method, run, regions, needs, predicted, extended)
+
+
+def _extension(scan, errors: dict, run: str, method, options: AutoOptions) -> np.ndarray:
+    """`(N,)` points outside the regions that take the global method `run` too: those where it
+    is predicted to beat Method I in pd (and not to lose more than the tolerance in ps) and
+    that add nothing to its cost. Method III runs on the whole object anyway; Method II makes
+    one light configuration per rack light and head position bin, so with per-point lights
+    only points whose configurations the regions use already come for free."""
+    better = ((errors[run]["pd"] < errors["local"]["pd"])
+              & (errors[run]["ps"] <= (1.0 + options.tolerance) * errors["local"]["ps"]) & (method == 0))
+    light_pos = getattr(scan, "light_pos", None)
+    if run != "radiosity" or light_pos is None or np.ndim(light_pos) != 3 or not better.any():
+        return better
+    from .radiosity import light_configs
+
+    index = light_configs(light_pos, scan.n_points, options.radiosity.light_bin).index
+    made = np.zeros(index.max() + 1, bool)
+    made[index[method > 0]] = True
+    return better & made[index].all(axis=1)
 
 
 # -- running it ------------------------------------------------------------------------------
@@ -389,9 +441,11 @@ def photon_available(model: str) -> tuple[bool, str]:
     return True, ""
 
 
-def _run(method: str, scan, options: AutoOptions, caster) -> Estimate:
+def _run(method: str, scan, options: AutoOptions, caster, points=None) -> Estimate:
+    """Run `method`; Method II only for `points` (its cost shrinks with the regions)."""
     if method == "radiosity":
-        return estimate_radiosity(scan, dataclasses.replace(options.radiosity, local=options.local), caster)
+        return estimate_radiosity(scan, dataclasses.replace(options.radiosity, local=options.local), caster,
+                                  points=points)
     if method == "photon":
         from .inverse_photon import PhotonOptions, estimate_photon
 
@@ -445,7 +499,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     other = None
     if p.run is not None:
         t0 = time.perf_counter()
-        other = _run(p.run, scan, options, caster)
+        other = _run(p.run, scan, options, caster, points=p.method > 0)
         seconds[p.run] = time.perf_counter() - t0
     t0 = time.perf_counter()
     use_other = p.method > 0
@@ -487,6 +541,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         "statistics": measures.statistics(),
         "predicted": p.predicted, "predicted_unavailable": best_unavailable,
         "needs_global_points": int(p.needs_global.sum()),
+        "extended_points": int(p.extended.sum()) if p.extended is not None else 0,
         "regions": p.regions, "rings": options.rings, "min_region": options.min_region,
         "error_model": asdict(options.model),
         "form_factors": {"rays": measures.ff.rays, "nonzeros": int(len(measures.ff.values)),
