@@ -223,7 +223,8 @@ def _source() -> str:
 def run_bench(scene_labels, sweep, cfg, log=print) -> dict:
     """Every setting of `sweep` on every scene of `scene_labels`; returns the raw results
     (Pareto fronts marked) for `write_outputs`."""
-    t0, load0, started, source = time.perf_counter(), os.getloadavg(), time.strftime("%Y-%m-%dT%H:%M:%S"), _source()
+    t0, cpu0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()
+    started, source = time.strftime("%Y-%m-%dT%H:%M:%S"), _source()
     scenes = []
     with tempfile.TemporaryDirectory() as tmp:
         for label in scene_labels:
@@ -249,6 +250,7 @@ def run_bench(scene_labels, sweep, cfg, log=print) -> dict:
     return {"command": cfg.command, "date": started, "source": source,
             "machine": f"{os.cpu_count()} cores, {platform.platform()}, Python {platform.python_version()}",
             "load_start": list(load0), "load_end": list(os.getloadavg()), "wall_s": time.perf_counter() - t0,
+            "cpu_s": time.process_time() - cpu0,
             "repeats": cfg.repeats, "scenes": scenes}
 
 
@@ -263,8 +265,9 @@ def markdown(res) -> str:
     import jax
 
     lines = ["# Speed against error: every method on Objects A-E", "",
-             f"- Run: `{res['command']}`, started {res['date']}, {res['wall_s']:.0f} s wall (scene rendering "
-             f"included); code: commit {res.get('source', 'unknown')}; machine: {res['machine']}, "
+             f"- Run: `{res['command']}`, started {res['date']}, {res['wall_s']:.0f} s wall"
+             + (f", {res['cpu_s']:.0f} s CPU of this process" if "cpu_s" in res else "")
+             + f" (scene rendering included); code: commit {res.get('source', 'unknown')}; machine: {res['machine']}, "
              f"jax {jax.__version__}.",
              f"- Load average (1/5/15 min) at start {'/'.join(f'{x:.2f}' for x in res['load_start'])}, at end "
              f"{'/'.join(f'{x:.2f}' for x in res['load_end'])}: the 2 cores are shared with other jobs, so seconds "
@@ -272,12 +275,14 @@ def markdown(res) -> str:
              f"- Timing: per setting one first call (compilation included, column `first s`), then the median of "
              f"{res['repeats']} warm call(s) (`warm s`, the x axis of the plot and of the Pareto fronts). Every call "
              "builds its own Embree scene and casts form factors afresh (caches cleared). Scene rendering is not "
-             "timed here. Compilation shared between settings of one scene is paid by the first that needs it (`auto` runs last "
-             "and reuses what Methods I-III compiled).",
+             "timed here. Compiled code lives for the whole process: a setting whose array shapes match an earlier one's starts "
+             "compiled (`auto` after Methods I-III; E diffuse after E glossy, same mesh and lights), so its `first s` "
+             "can be close to its `warm s`.",
              "- Errors against the truth: `pd` median relative pd error (mean over RGB) over all points; `ps` median "
              "relative ps error over points whose true ps > 0; `fold` (Object E) mean relative pd error of measured "
              "points within 2 cm of the fold, the fold line itself left out.",
-             "- Truth: Ward (Method III fits Ward); `I TS` fits Torrance-Sparrow to it (model mismatch in ps). "
+             "- Truth: Ward (Method III fits Ward); `I TS` fits Torrance-Sparrow to it: a model mismatch, and its ps is "
+             "a differently normalised lobe height, so its ps error measures the mismatch, not the fit. "
              "`half`: only the first half of the greedy light selection (the lights chosen first). Method II: "
              "256 form-factor rays per patch, exact first bounce. Method III: `III <photons per light>/<iterations>`, "
              "LM unless `simplex`. `auto`: `--method auto` at its default target error (0.05), Ward, candidates "
@@ -301,6 +306,12 @@ def markdown(res) -> str:
                          + (f" {_pct(e.get('fold'))} |" if has_fold else "")
                          + f" {r['first_s']:.2f} | {r['seconds']:.2f} | {front} |")
         lines.append("")
+        best = min((r for r in sc["rows"] if r["errors"]["pd"] is not None), key=lambda r: r["errors"]["pd"])
+        near = min((r for r in sc["rows"] if r["errors"]["pd"] is not None
+                    and r["errors"]["pd"] <= 1.1 * best["errors"]["pd"]), key=lambda r: r["seconds"])
+        lines.append(f"- Lowest pd error: {best['label']} ({_pct(best['errors']['pd'])}, {best['seconds']:.2f} s); "
+                     f"fastest within 10 % of it: {near['label']} ({_pct(near['errors']['pd'])}, "
+                     f"{near['seconds']:.2f} s, {near['seconds'] / best['seconds']:.2g}x the time).")
         for m in METRICS:
             on = [r for r in sc["rows"] if r.get("front", {}).get(m)]
             if on:
