@@ -275,13 +275,15 @@ def markdown(res) -> str:
              f"- Timing: per setting one first call (compilation included, column `first s`), then the median of "
              f"{res['repeats']} warm call(s) (`warm s`, the x axis of the plot and of the Pareto fronts). Every call "
              "builds its own Embree scene and casts form factors afresh (caches cleared). Scene rendering is not "
-             "timed here. Compiled code lives for the whole process: a setting whose array shapes match an earlier one's starts "
+             "timed here. Compiled code lives for the whole process: a setting whose array shapes match an "
+             "earlier one's starts "
              "compiled (`auto` after Methods I-III; E diffuse after E glossy, same mesh and lights), so its `first s` "
              "can be close to its `warm s`.",
              "- Errors against the truth: `pd` median relative pd error (mean over RGB) over all points; `ps` median "
              "relative ps error over points whose true ps > 0; `fold` (Object E) mean relative pd error of measured "
              "points within 2 cm of the fold, the fold line itself left out.",
-             "- Truth: Ward (Method III fits Ward); `I TS` fits Torrance-Sparrow to it: a model mismatch, and its ps is "
+             "- Truth: Ward (Method III fits Ward); `I TS` fits Torrance-Sparrow to it: a model mismatch, and "
+             "its ps is "
              "a differently normalised lobe height, so its ps error measures the mismatch, not the fit. "
              "`half`: only the first half of the greedy light selection (the lights chosen first). Method II: "
              "256 form-factor rays per patch, exact first bounce. Method III: `III <photons per light>/<iterations>`, "
@@ -351,7 +353,8 @@ def plot(res, path: str) -> None:
                 ax.scatter(r["seconds"], r["errors"][m], c=_COLOURS[s["method"]],
                            marker="s" if s["half"] else ("^" if s["solver"] == "simplex" else "o"),
                            s=36, zorder=3, edgecolors="k" if r.get("front", {}).get(m) else "none")
-                ax.annotate(r["label"], (r["seconds"], r["errors"][m]), fontsize=6.5, xytext=(3, 3 if k % 2 == 0 else -9),
+                ax.annotate(r["label"], (r["seconds"], r["errors"][m]), fontsize=6.5,
+                            xytext=(3, 3 if k % 2 == 0 else -9),
                             textcoords="offset points")
             on = sorted((r for r in rows if r.get("front", {}).get(m)), key=lambda r: r["seconds"])
             if on:
