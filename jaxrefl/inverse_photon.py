@@ -482,8 +482,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     # Identifiability of the specular part, then the window fill and pd with it.
     dof = np.maximum(3.0 * b_mask.sum(1) - 2.0, 1.0)
     scale = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)
-    sd_ps = np.sqrt(np.asarray(fin["var_ps"]) * scale)
-    sd_rho = np.sqrt(np.asarray(fin["var_rho"]) * scale)
+    # A negative variance (a near-singular information matrix) is no information.
+    sd_ps, sd_rho = (np.sqrt(np.where(v >= 0, v, np.inf) * scale)
+                     for v in (np.asarray(fin["var_ps"]), np.asarray(fin["var_rho"])))
     identifiable = np.asarray(_identifiable(jnp.asarray(ps), fin["var_ps"], fin["var_rho"], fin["chi2"], rows,
                                             options.min_snr))
     observed_any = use.any(1)
