@@ -300,8 +300,9 @@ class Plan:
     """`method` `(N,)` index into `METHODS` used at each point; `run` the global method
     to run (None: Method I alone); `regions` one dict per region; `needs_global` `(N,)`
     the mask before regions were formed; `predicted` per-method scene medians and
-    those of the plan; `extended` `(N,)` points outside the regions that take the global
-    method's result as well (`_extension`)."""
+    those of the plan; `extended` `(N,)` points outside the regions that take a global
+    method's result as well (`_extension`); `runs` every global method to run, cheapest
+    first (`run` is the last)."""
 
     method: np.ndarray
     run: str | None
@@ -309,6 +310,7 @@ class Plan:
     needs_global: np.ndarray
     predicted: dict
     extended: np.ndarray | None = None
+    runs: tuple = ()
 
 
 def _meets(errors: dict, candidates, target: float, tolerance: float, reduce=lambda e: e):
@@ -327,15 +329,17 @@ def _median(e):
     return float(np.median(e))
 
 
-def _shortfall(errors: dict, candidates, method: str, core, options) -> float:
-    """Largest ratio over pd and ps of `method`'s median error in `core` to the limit
-    `max(target, (1 + tolerance) best)` (<= 1: within it)."""
-    out = 0.0
+def _shortfall(errors: dict, candidates, method: str, core, options) -> tuple:
+    """Ratios of `method`'s median pd and ps errors in `core` to their limits
+    `max(target, (1 + tolerance) best)`, each floored at 1 (within the limit): compared
+    pd first (the albedo is what every method estimates; ps only where a lobe is seen),
+    then ps, then cost."""
+    out = []
     for q in ("pd", "ps"):
         best = min(_median(errors[k][q][core]) for k in candidates)
         limit = max(options.target_error, (1.0 + options.tolerance) * best)
-        out = max(out, _median(errors[method][q][core]) / max(limit, 1e-12))
-    return out
+        out.append(max(1.0, _median(errors[method][q][core]) / max(limit, 1e-12)))
+    return tuple(out) + (METHODS.index(method),)
 
 
 def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), available=None) -> Plan:
@@ -366,16 +370,17 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     labels = components(grown)
 
     method = np.zeros(n, np.int64)
-    regions, wanted = [], []
+    regions, wanted, fits = [], [], []
     for r in range(labels.max() + 1):
         pts = labels == r
         core = pts & seeds  # the ring is a margin, not evidence: decide on the points that needed it
         ok = _meets(errors, available, options.target_error, options.tolerance,
                     reduce=lambda e, core=core: _median(e[core]))
         choice = next((k for k in available if ok[k]), None)
-        if choice is None:  # none is within the tolerance in both pd and ps: the one closest to it
+        if choice is None:  # none is within the limits in both pd and ps: pd first, then ps
             choice = min(available, key=lambda k, core=core: _shortfall(errors, available, k, core, options))
         wanted.append(choice)
+        fits.append(ok)
         regions.append({
             "region": r, "points": int(pts.sum()), "seed_points": int((pts & seeds).sum()),
             "needed": choice,
@@ -386,16 +391,19 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     run = max(wanted, key=METHODS.index) if wanted else None
     if run == "local":
         run = None
-    for reg, choice in zip(regions, wanted):
-        # The most capable method any region needs runs anyway: regions that would make do
-        # with less take its result, unless that is Method I.
-        used = choice if choice == "local" or run is None else run
+    for reg, choice, ok in zip(regions, wanted, fits):
+        # The most capable method any region needs runs anyway: a region that would make do with
+        # less (not Method I) takes its result where that meets the region's limits too; otherwise
+        # its own method runs as well.
+        used = run if choice != "local" and ok.get(run, False) else choice
         reg["method"] = used
         method[labels == reg["region"]] = METHODS.index(used)
+    runs = tuple(k for k in METHODS[1:] if np.any(method == METHODS.index(k)))
     extended = np.zeros(n, bool)
-    if run is not None:
-        extended = _extension(scan, errors, run, method, options)
-        method[extended] = METHODS.index(run)
+    for k in runs:  # cheapest first: a point predicted to gain from both takes the more capable
+        more = _extension(scan, errors, k, method, options)
+        method[more] = METHODS.index(k)
+        extended |= more
 
     def plan_errors(q):
         e = np.choose(method, [errors.get(k, {q: np.zeros(n)})[q] for k in METHODS])
@@ -403,7 +411,7 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
 
     predicted = {k: {q: _median(errors[k][q]) for q in ("pd", "ps")} for k in available}
     predicted["plan"] = {q: plan_errors(q) for q in ("pd", "ps")}
-    return Plan(method, run, regions, needs, predicted, extended)
+    return Plan(method, run, regions, needs, predicted, extended, runs)
 
 
 def _extension(scan, errors: dict, run: str, method, options: AutoOptions) -> np.ndarray:
@@ -421,7 +429,7 @@ def _extension(scan, errors: dict, run: str, method, options: AutoOptions) -> np
 
     index = light_configs(light_pos, scan.n_points, options.radiosity.light_bin).index
     made = np.zeros(index.max() + 1, bool)
-    made[index[method > 0]] = True
+    made[index[method == METHODS.index("radiosity")]] = True
     return better & made[index].all(axis=1)
 
 
@@ -496,14 +504,16 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     p = plan(scan, measures, options, available)
     seconds["plan"] = time.perf_counter() - t0
 
-    other = None
-    if p.run is not None:
+    others = {}
+    for k in p.runs:
         t0 = time.perf_counter()
-        other = _run(p.run, scan, options, caster, points=p.method > 0)
-        seconds[p.run] = time.perf_counter() - t0
+        others[k] = _run(k, scan, options, caster, points=p.method == METHODS.index(k))
+        seconds[k] = time.perf_counter() - t0
     t0 = time.perf_counter()
     use_other = p.method > 0
-    est = _merge(measures.local, other, use_other)
+    est = _merge(measures.local, None, use_other)
+    for k, other in others.items():
+        est = _merge(est, other, p.method == METHODS.index(k))
     seconds["merge"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - t_start
 
@@ -518,12 +528,12 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
             reason = (f"Method I misses the target {t:g} at {int(p.needs_global.sum())} point(s), in no region of "
                       f"{options.min_region} or more points whose median needs a global method")
     else:
-        choice = p.run if counts.get("local", 0) == 0 else f"local+{p.run}"
+        choice = "+".join(k for k in METHODS if counts.get(k, 0) > 0)
         needing = [r for r in p.regions if r["needed"] == p.run]
         short = [r for r in needing if max(r["predicted"][p.run].values()) > t]
         reason = (f"{len(p.regions)} region(s), {int(use_other.sum())} of {scan.n_points} points, where Method I's "
-                  f"predicted error misses the target {t:g}; {p.run} is the cheapest method predicted to meet it "
-                  "there")
+                  f"predicted error misses the target {t:g}; {' / '.join(p.runs)}: the cheapest method predicted "
+                  "to meet it there")
         if short:
             reason += (f" (in {len(short)} of them no candidate is predicted to meet it: {p.run} is the cheapest "
                        f"within {options.tolerance:.0%} of the best prediction)")
@@ -536,7 +546,8 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         best_unavailable = {k: {q: _median(v[q]) for q in ("pd", "ps")} for k, v in errs.items()}
     auto = {
         "target_error": options.target_error, "tolerance": options.tolerance,
-        "choice": choice, "reason": reason, "global_method": p.run, "points_by_method": counts,
+        "choice": choice, "reason": reason, "global_method": p.run, "global_methods": list(p.runs),
+        "points_by_method": counts,
         "candidates": available, "unavailable": unavailable, "notes": notes,
         "statistics": measures.statistics(),
         "predicted": p.predicted, "predicted_unavailable": best_unavailable,
@@ -547,9 +558,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         "form_factors": {"rays": measures.ff.rays, "nonzeros": int(len(measures.ff.values)),
                          "mean_row_sum": float(measures.mass.mean())},
     }
-    runs = {"local": measures.local.meta}
-    if other is not None:
-        runs[p.run] = other.meta
+    runs = {"local": measures.local.meta, **{k: other.meta for k, other in others.items()}}
     est.meta = _jsonable({
         "method": "auto", "model": options.local.model, "auto": auto, "seconds": seconds, "runs": runs,
         "options": {"target_error": options.target_error, "tolerance": options.tolerance, "rings": options.rings,

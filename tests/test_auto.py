@@ -115,6 +115,23 @@ def test_regions_are_components_dilated_by_rings_and_small_ones_are_dropped():
     assert (exact.method > 0).sum() == 9
 
 
+def test_a_region_keeps_its_own_method_where_the_more_capable_one_is_predicted_worse():
+    """Diffuse interreflection in one block (Method II's case), light sent by specular lobes in
+    another (Method III's, by pd): both run, each on its block; Method III's result is not
+    forced on the block where it is predicted worse."""
+    v, f = grid_plane(1.0, 21)
+    ij = np.stack(np.unravel_index(np.arange(len(v)), (21, 21)), 1)
+    diffuse = (np.abs(ij[:, 0] - 5) <= 1) & (np.abs(ij[:, 1] - 5) <= 1)
+    lobes = (np.abs(ij[:, 0] - 15) <= 1) & (np.abs(ij[:, 1] - 15) <= 1)
+    m = _fake_measures(len(v), np.where(diffuse, 0.3, np.where(lobes, 0.05, 0.0)))
+    m.gain_specular = np.where(lobes, 0.05, 0.0)
+    scan = SimpleNamespace(faces=f, n_points=len(v))
+    p = auto.plan(scan, m, auto.AutoOptions(target_error=0.01, rings=0))
+    assert p.runs == ("radiosity", "photon") and p.run == "photon"
+    assert np.all(p.method[diffuse] == 1) and np.all(p.method[lobes] == 2)
+    assert np.all(p.method[~(diffuse | lobes)] == 0)
+
+
 def test_target_decides_and_an_unreachable_target_takes_the_cheapest_near_the_best():
     v, f = grid_plane(1.0, 11)
     scan = SimpleNamespace(faces=f, n_points=len(v))
