@@ -23,10 +23,7 @@ __all__ = ["run_demo"]
 
 
 def _plot_fold(path, fold, direct, gi, mc_stderr):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .render import new_figure
 
     bins = np.linspace(fold.min(), fold.max(), 41)
     centres = 0.5 * (bins[1:] + bins[:-1])
@@ -34,7 +31,8 @@ def _plot_fold(path, fold, direct, gi, mc_stderr):
     ratio = gi / np.maximum(direct, 1e-12)
     row_mean = np.array([ratio[which == k].mean() if np.any(which == k) else np.nan
                          for k in range(len(centres))])
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = new_figure(figsize=(6, 3.5))
+    ax = fig.subplots()
     ax.plot(fold * 100, ratio, ".", ms=2, alpha=0.3, color="0.6", label="vertices")
     ax.plot(centres * 100, row_mean, "-", color="C0", label="mean across the plate")
     ax.axvline(0, color="k", lw=0.5)
@@ -45,18 +43,15 @@ def _plot_fold(path, fold, direct, gi, mc_stderr):
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def _plot_convergence(path, conv):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .render import new_figure
 
     s = np.array(conv["samples"], dtype=float)
     e = np.array(conv["rms_relative_error"])
-    fig, ax = plt.subplots(figsize=(5, 3.5))
+    fig = new_figure(figsize=(5, 3.5))
+    ax = fig.subplots()
     ax.loglog(s, e, "o-", label=f"path tracer (slope {conv['slope']:.2f})")
     ax.loglog(s, e[0] * np.sqrt(s[0] / s), "k--", lw=0.8, label="samples$^{-1/2}$")
     ax.set_xlabel("paths per observation")
@@ -65,7 +60,6 @@ def _plot_convergence(path, conv):
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def _relight_against_truth(scan, estimate, out_path, name) -> dict:

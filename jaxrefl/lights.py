@@ -209,17 +209,14 @@ def exact_minimum(diffuse_only, strong_specular, seen=None, target: float = 1.0,
 
 def plot_coverage(selection: Selection, path, title: str = "") -> None:
     """Figure 8 analogue: diffuse and specular coverage against the number of selected lights."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from .io import atomic_write
+    from .render import new_figure
 
     steps = [0] + [c["step"] for c in selection.curve]
     diff = [0.0] + [100 * c["diffuse_coverage"] for c in selection.curve]
     spec = [0.0] + [100 * c["specular_coverage"] for c in selection.curve]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharex=True)
+    fig = new_figure(figsize=(9, 3.4))
+    axes = fig.subplots(1, 2, sharex=True)
     for ax, values, limit, label in (
         (axes[0], diff, selection.diffuse_coverage_all, "diffuse-only, once"),
         (axes[1], spec, selection.specular_coverage_all, "strong specular, twice"),
@@ -235,4 +232,3 @@ def plot_coverage(selection: Selection, path, title: str = "") -> None:
     fig.suptitle(title or "Measurability against the number of selected lights", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.94))
     atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=120))
-    plt.close(fig)

@@ -171,7 +171,7 @@ def _save_figure(path, fig) -> None:
     atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110))
 
 
-def _figure(**kw):
+def new_figure(**kw):
     """A figure outside pyplot (no backend chosen, nothing to close): drawing files from
     a notebook leaves its inline backend alone."""
     from matplotlib.figure import Figure
@@ -200,7 +200,7 @@ def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = 
     nearest = faces[np.maximum(hits.face, 0), np.argmax(hits.barycentric, axis=1)]
     status = np.where(hits.hit, np.asarray(est.status, dtype=np.float64)[nearest], np.nan).reshape(shape)
     aspect = shape[1] / shape[0]
-    fig = _figure(figsize=(2 * 3.6 * min(aspect, 2.5) + 1.6, 2 * 3.6 + 0.8))
+    fig = new_figure(figsize=(2 * 3.6 * min(aspect, 2.5) + 1.6, 2 * 3.6 + 0.8))
     axes = fig.subplots(2, 2)
     (a, b), (c, d) = axes
     pd_img = to_srgb8(pd, exposure=1.0, background=(255, 255, 255))
@@ -247,7 +247,7 @@ def comparison_figure(path, image: np.ndarray, reference: np.ndarray, labels=("r
     limit = float(np.nanpercentile(np.abs(diff), 99.5)) if np.isfinite(diff).any() else 1.0
     limit = limit if limit > 0 else 1.0
     aspect = image.shape[1] / image.shape[0]
-    fig = _figure(figsize=(3 * 3.4 * min(aspect, 2.5) + 1.2, 3.8))
+    fig = new_figure(figsize=(3 * 3.4 * min(aspect, 2.5) + 1.2, 3.8))
     axes = fig.subplots(1, 3)
     for ax, img, label in zip(axes, (image, reference), labels):
         ax.imshow(to_srgb8(img, exposure=exposure, background=(255, 255, 255)))

@@ -171,12 +171,10 @@ def fold_profile(scan, results: dict, out_png: str | None = None, near: float = 
             entry["near_fold_points"] = int(close.sum())
         out[label] = entry
     if out_png:
-        import matplotlib
+        from .render import new_figure
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), sharey=True)
+        fig = new_figure(figsize=(11, 3.4))
+        axes = fig.subplots(1, 3, sharey=True)
         for c, (ax, name) in enumerate(zip(axes, ("R", "G", "B"))):
             for k, (label, est) in enumerate(results.items()):
                 err = out[label].get("near_fold_mean_rel_error")
@@ -193,7 +191,6 @@ def fold_profile(scan, results: dict, out_png: str | None = None, near: float = 
                      fontsize=10)
         fig.tight_layout()
         fig.savefig(out_png, dpi=120)
-        plt.close(fig)
         out["figure"] = out_png
     return out
 
