@@ -370,7 +370,7 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     labels = components(grown)
 
     method = np.zeros(n, np.int64)
-    regions, wanted, fits = [], [], []
+    regions, wanted, cores = [], [], []
     for r in range(labels.max() + 1):
         pts = labels == r
         core = pts & seeds  # the ring is a margin, not evidence: decide on the points that needed it
@@ -380,7 +380,7 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
         if choice is None:  # none is within the limits in both pd and ps: pd first, then ps
             choice = min(available, key=lambda k, core=core: _shortfall(errors, available, k, core, options))
         wanted.append(choice)
-        fits.append(ok)
+        cores.append(core)
         regions.append({
             "region": r, "points": int(pts.sum()), "seed_points": int((pts & seeds).sum()),
             "needed": choice,
@@ -391,11 +391,13 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     run = max(wanted, key=METHODS.index) if wanted else None
     if run == "local":
         run = None
-    for reg, choice, ok in zip(regions, wanted, fits):
+    for reg, choice, core in zip(regions, wanted, cores):
         # The most capable method any region needs runs anyway: a region that would make do with
-        # less (not Method I) takes its result where that meets the region's limits too; otherwise
-        # its own method runs as well.
-        used = run if choice != "local" and ok.get(run, False) else choice
+        # less (not Method I) takes its result where its pd is predicted no worse (within the
+        # tolerance); otherwise its own method runs as well.
+        no_worse = run is not None and (_median(errors[run]["pd"][core])
+                                        <= (1.0 + options.tolerance) * _median(errors[choice]["pd"][core]))
+        used = run if choice != "local" and no_worse else choice
         reg["method"] = used
         method[labels == reg["region"]] = METHODS.index(used)
     runs = tuple(k for k in METHODS[1:] if np.any(method == METHODS.index(k)))
