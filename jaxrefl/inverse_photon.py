@@ -508,7 +508,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     info = np.asarray(fin["info_pd"], np.float64)
     std_pd = np.where(info > 0, np.sqrt(scale_a / np.where(info > 0, info, 1.0)), np.inf)
     std_ps = np.where(identifiable, sd_ps, np.inf)
-    std_alpha = np.where(identifiable, alpha * sd_rho, np.inf)
+    std_alpha = np.where(identifiable, alpha * np.where(identifiable, sd_rho, 0.0), np.inf)
     fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, alpha), (std_pd, std_ps, std_alpha))
