@@ -119,7 +119,8 @@ def test_cli_estimate_photon(convex, tmp_path, capsys):
 def test_oblique_glossy_fold():
     """§5.3.1 / Figure 22: glossy Object E set obliquely (pinhole rig, tilted 25 deg),
     rendered with global illumination. Method III's mean pd error beside the fold is
-    at least 2x smaller than Methods I and II (measured: 11 % vs 36 % and 42 %)."""
+    at least 2x smaller than Methods I and II at the paper's 2M photons per light
+    (measured: 15.5 % vs 36 % and 42 %; at 1M photons 19.6 %, `RESULTS_inverse_photon.md`)."""
     scan = _selected_scan("E", 32, setup="glossy", rig="pinhole", tilt_deg=(25.0, 0.0), global_illumination=True,
                           samples=1024, sensor=Sensor(noise=0.01, bits=12, full_scale=8.0), seed=0)
     s = fold_coordinate(make_object("E", 32, "glossy").vertices)
@@ -128,5 +129,5 @@ def test_oblique_glossy_fold():
     err = {"I": _rel(estimate_local(scan, LocalOptions(model="ward")), scan, near).mean(),
            "II": _rel(estimate_radiosity(scan, RadiosityOptions(local=LocalOptions(model="ward"))), scan,
                       near).mean(),
-           "III": _rel(estimate_photon(scan, PhotonOptions(photons=1_000_000, iterations=20)), scan, near).mean()}
+           "III": _rel(estimate_photon(scan, PhotonOptions(photons=2_000_000, iterations=20)), scan, near).mean()}
     assert 2 * err["III"] <= min(err["I"], err["II"]), err
