@@ -29,9 +29,9 @@ Outer iteration `k` (all points at once, `jax.lax.scan` inside one `jit`):
    step (b) samples): `ps`, `alpha` from the `T_spec` and `T_none` samples with
    `pd` fixed and `Q` held at the current `alpha`: `ps` projected out (least
    squares, `0 <= ps <= PS_MAX`) and `ln alpha` by a 16-value grid then
-   safeguarded Newton steps (`solver='lm'`, `lm.gauss_newton_1d`), or both by a downhill simplex over
-   `(ln ps, ln alpha)` as the paper (`solver='simplex'`, optimistix NelderMead,
-   vmapped over the points). Only lobes the data pin down (the identifiability
+   safeguarded Newton steps (`solver='lm'`, `lm.gauss_newton_1d`), or both by a
+   downhill simplex over `(ln ps, ln alpha)` as the paper (`solver='simplex'`,
+   optimistix NelderMead, vmapped over the points). Only lobes the data pin down (the identifiability
    test below) are taken; the others get the mean of those in their window, so
    that an unmeasurable lobe cannot feed invented light to its neighbours;
 3. the new estimate moves a share `damping` of the way to (a) and (b) (0.5 by
