@@ -30,12 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .io import atomic_write
-
-try:
-    import fcntl
-except ImportError:  # not POSIX: output folders are not locked against a second batch
-    fcntl = None
+from .io import atomic_write, folder_lock
 
 __all__ = ["Job", "find_scans", "plan_jobs", "result_loads", "run_job", "run_batch", "summary_table"]
 
@@ -187,17 +182,6 @@ def _skipped_record(job: Job) -> dict:
     return dict(record, status="skipped")
 
 
-def _lock(outdir):
-    fh = open(os.path.join(outdir, ".lock"), "a")
-    if fcntl is not None:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.close()
-            raise ValueError(f"out: {outdir} is in use by another batch") from None
-    return fh
-
-
 def _remove_temporaries(outdir, jobs) -> int:
     """Remove the temporaries `atomic_write` leaves when its process is killed mid-write."""
     names = {os.path.basename(p) for j in jobs for p in (j.result, j.summary)} | {"summary.csv", "summary.md"}
@@ -282,7 +266,7 @@ def run_batch(source, outdir, options, *, client=None, retries: int = 2, estimat
         scans = list(source)
     jobs = plan_jobs(scans, outdir)
     os.makedirs(outdir, exist_ok=True)
-    with _lock(outdir):
+    with folder_lock(outdir, f"out: {outdir} is in use by another batch"):
         _remove_temporaries(outdir, jobs)
         records = {}
         todo = []

@@ -43,12 +43,7 @@ import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
 
-try:
-    import fcntl
-except ImportError:  # not POSIX: sessions are not locked against a second capture
-    fcntl = None
-
-from .io import atomic_write
+from .io import atomic_write, folder_lock
 from .rig.serial import LightController, LinkOptions, RigError
 
 __all__ = ["Plan", "CaptureError", "load_plan", "plan_from_json", "shell_camera", "image_name", "capture",
@@ -244,18 +239,6 @@ def _recover(folder, plan: Plan, manifest: dict, ext: str) -> dict:
     return report
 
 
-def _lock(folder):
-    fh = open(os.path.join(folder, ".lock"), "a")
-    if fcntl is None:
-        return fh
-    try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        fh.close()
-        raise ValueError(f"out: session {folder} is in use by another capture") from None
-    return fh
-
-
 def capture(plan: Plan, folder, port: str, camera, *, options: LinkOptions = LinkOptions(), ext: str = ".png",
             progress: bool = False) -> dict:
     """Capture (or resume capturing) one image per light of `plan` into `folder`.
@@ -293,7 +276,7 @@ def _capture(plan, folder, port, camera, options, ext, progress, manifest, t0) -
         if beyond:
             raise ValueError(f"plan: light {beyond[0]} is beyond the controller's {n} lights (0-{n - 1})")
         os.makedirs(folder, exist_ok=True)
-        with _lock(folder):
+        with folder_lock(folder, f"out: session {folder} is in use by another capture"):
             manifest = _read_manifest(folder, plan, ext)  # again, under the lock
             if manifest is None:
                 manifest = {"format": MANIFEST_FORMAT, "version": 1, "plan": {**plan.to_json(), "sha256": plan.sha256},

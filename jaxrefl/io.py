@@ -299,6 +299,23 @@ def save_scan(path, scan: Scan) -> None:
     atomic_write(path, lambda fh: np.savez(fh, **arrays))
 
 
+def folder_lock(folder, busy: str):
+    """An open lock file in `folder`, held exclusively until closed (use as a context
+    manager); `ValueError(busy)` when another process holds it. Not POSIX: no lock."""
+    try:
+        import fcntl
+    except ImportError:
+        fcntl = None
+    fh = open(os.path.join(folder, ".lock"), "a")
+    if fcntl is not None:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            raise ValueError(busy) from None
+    return fh
+
+
 def atomic_write(path, write) -> None:
     """Call `write(file_object)` on a temporary file beside `path`, then rename it to `path`."""
     path = os.fspath(path)

@@ -15,7 +15,7 @@ import pytest
 import jaxrefl
 from data_synth.scans import make_scan
 from jaxrefl import batch, cli
-from jaxrefl.io import atomic_write
+from jaxrefl.io import atomic_write, folder_lock
 from jaxrefl.result import load_result
 
 NAMES = ("s0", "s1", "s2")
@@ -131,7 +131,7 @@ def test_failing_scans_are_reported_and_the_others_finish(scan_dir, tmp_path, ca
     assert cli.main(["batch", str(listing), "--out", str(tmp_path / "dup")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "two bundles named 's0'" in err[0]
-    with batch._lock(str(out)):
+    with folder_lock(str(out), "held by the test"):
         with pytest.raises(ValueError, match="in use by another batch"):
             batch.run_batch(scan_dir, out, estimate_options())
 
