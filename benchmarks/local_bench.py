@@ -104,21 +104,6 @@ def _write_section(path, text, quality):
         fh.write(new)
 
 
-def _direct(scan, pd, ps, sigma):
-    """Direct Torrance-Sparrow radiance `(N, K, 3)` of `scan`'s geometry (no cast shadows)."""
-    import jax.numpy as jnp
-
-    from jaxrefl import brdf
-    from jaxrefl.rig import observation_geometry
-
-    g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
-    full, _ = brdf.MODELS["torrance-sparrow"]
-    f = jax.vmap(jax.vmap(full, in_axes=(None, None, None, 0, 0, 0)))(
-        jnp.asarray(pd), jnp.asarray(ps), jnp.log(jnp.asarray(sigma)), g.cos_i, g.cos_o, g.theta_r)
-    e = scan.intensities()[None] * np.maximum(np.asarray(g.cos_i), 0) / np.asarray(g.light_distance) ** 2
-    return np.asarray(f) * e[..., None]
-
-
 def _coverage(lines):
     from data_synth.scans import Sensor, make_scan
     from jaxrefl.classify import T_SPEC, classify_scan
@@ -216,7 +201,7 @@ def _fold(lines):
 def _pool(lines):
     import dataclasses
 
-    from data_synth.scans import Sensor, apply_sensor, make_scan
+    from data_synth.scans import Sensor, apply_sensor, direct_radiance, make_scan
     from jaxrefl.classify import classify_scan
     from jaxrefl.lights import select_lights
     from jaxrefl.local import LocalOptions, estimate_local, fit_rows, prepare_rows, quantisation_step
@@ -242,17 +227,17 @@ def _pool(lines):
     for name, ps, sigma in (("glaze, sigma 0.02 rad, ps 0.4", np.full(n, 0.4), np.full(n, 0.02)),
                             ("glaze, sigma 0.05 rad, ps 0.4", np.full(n, 0.4), np.full(n, 0.05)),
                             ("V's own (sigma 0.06 / 0.18)", plan.true_ps, plan.true_sigma)):
-        truth = _direct(plan, plan.true_pd, ps, sigma)
+        truth = direct_radiance(plan, plan.true_pd, ps, sigma)
         scan, _ = make_scan("V", resolution=64, lights=sel)
         obs, level = apply_sensor(truth[:, sel], scan.valid, Sensor(noise=0.01, bits=8), np.random.default_rng(3))
         scan = dataclasses.replace(scan, radiance=np.where(scan.valid[..., None], obs, 0.0).astype(np.float32),
                                    saturation=level, true_ps=ps, true_sigma=sigma)
         lit = m.measurable[:, held]
-        spec = truth[:, held] - _direct(plan, plan.true_pd, np.zeros(n), sigma)[:, held]
+        spec = truth[:, held] - direct_radiance(plan, plan.true_pd, np.zeros(n), sigma)[:, held]
         bright = lit & (spec.mean(-1) > 0.1 * truth[:, held].mean(-1))
 
         def errors(pd, ps_e, sigma_e):
-            d = _direct(plan, pd, ps_e, np.maximum(sigma_e, 1e-6))[:, held] - truth[:, held]
+            d = direct_radiance(plan, pd, ps_e, np.maximum(sigma_e, 1e-6))[:, held] - truth[:, held]
             t = truth[:, held]
             return [np.sqrt(np.sum(d[k] ** 2) / np.sum(t[k] ** 2)) for k in (lit, bright, lit & ~bright)]
 

@@ -25,7 +25,7 @@ from jaxrefl.rig import CylindricalScanner, PinholeCamera, paper_light_rack
 from .objects import EXTRA_NAMES, OBJECT_NAMES, make_object
 from .pathtrace import Material, PathTracer
 
-__all__ = ["Sensor", "apply_sensor", "make_rig", "make_scan"]
+__all__ = ["Sensor", "apply_sensor", "make_rig", "make_scan", "direct_radiance"]
 
 RIGS = ("scanner", "pinhole")
 
@@ -247,3 +247,21 @@ def make_scan(
         **{rough_key: obj.roughness},
     )
     return validate_scan(scan), report
+
+
+def direct_radiance(scan: Scan, pd, ps, sigma) -> np.ndarray:
+    """Direct Torrance-Sparrow radiance `(N, K, 3)` [W/(sr m^2)] of `scan`'s geometry
+    under its lights for reflectance `pd` `(N, 3)`, `ps` `(N,)`, `sigma` `(N,)` [rad]:
+    no cast shadows, no sensor (relighting errors under held-out lights)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxrefl import brdf
+    from jaxrefl.rig import observation_geometry
+
+    g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
+    full, _ = brdf.MODELS["torrance-sparrow"]
+    f = jax.vmap(jax.vmap(full, in_axes=(None, None, None, 0, 0, 0)))(
+        jnp.asarray(pd), jnp.asarray(ps), jnp.log(jnp.asarray(sigma)), g.cos_i, g.cos_o, g.theta_r)
+    e = scan.intensities()[None] * np.maximum(np.asarray(g.cos_i), 0) / np.asarray(g.light_distance) ** 2
+    return np.asarray(f) * e[..., None]

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from data_synth.scans import Sensor, make_scan
+from data_synth.scans import Sensor, direct_radiance, make_scan
 from jaxrefl import brdf
 from jaxrefl.classify import T_DIFF, T_INVALID, T_NONE, T_SPEC, classify_scan
 from jaxrefl.lights import select_lights
@@ -197,18 +197,6 @@ def test_fold_object_pd_rises_toward_the_fold():
     assert profile[0] > 0.95 and profile[-1] < 0.9 and profile[-1] > 0.8  # ... to above the truth, 0.8
 
 
-def _direct_radiance(scan, pd, ps, sigma):
-    """Direct Torrance-Sparrow radiance `(N, K, 3)` of `scan`'s geometry (no shadows)."""
-    from jaxrefl.rig import observation_geometry
-
-    g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
-    full, _ = brdf.MODELS["torrance-sparrow"]
-    f = jax.vmap(jax.vmap(full, in_axes=(None, None, None, 0, 0, 0)))(
-        jnp.asarray(pd), jnp.asarray(ps), jnp.log(jnp.asarray(sigma)), g.cos_i, g.cos_o, g.theta_r)
-    e = scan.intensities()[None] * np.maximum(np.asarray(g.cos_i), 0) / np.asarray(g.light_distance) ** 2
-    return np.asarray(f) * e[..., None]
-
-
 def test_pooled_lobes_relight_a_sharp_highlight_better():
     """A sharp glaze (sigma 0.02 rad) on the convex object, fitted under the selected lights
     (1 % noise, 8 bits), relit under the 52 others: pooling lobes across same-material
@@ -224,7 +212,7 @@ def test_pooled_lobes_relight_a_sharp_highlight_better():
     selected = select_lights(m.diffuse_only, m.strong_specular, m.seen, weights=m.pixel_weight).selected
     held = np.setdiff1d(np.arange(plan.n_lights), selected)
     ps, sigma = np.full(plan.n_points, 0.4), np.full(plan.n_points, 0.02)
-    truth = _direct_radiance(plan, plan.true_pd, ps, sigma)
+    truth = direct_radiance(plan, plan.true_pd, ps, sigma)
     scan, _ = make_scan("V", resolution=32, lights=selected)
     observed, level = apply_sensor(truth[:, selected], scan.valid, Sensor(noise=0.01, bits=8),
                                    np.random.default_rng(3))
@@ -233,7 +221,7 @@ def test_pooled_lobes_relight_a_sharp_highlight_better():
     lit = m.measurable[:, held]
 
     def relit_error(pd, ps_e, sigma_e):
-        pred = _direct_radiance(plan, pd, ps_e, np.maximum(sigma_e, 1e-6))[:, held]
+        pred = direct_radiance(plan, pd, ps_e, np.maximum(sigma_e, 1e-6))[:, held]
         return np.sqrt(np.sum((pred - truth[:, held])[lit] ** 2) / np.sum(truth[:, held][lit] ** 2))
 
     plain = fit_rows(prepare_rows(scan))
