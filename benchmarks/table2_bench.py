@@ -52,7 +52,7 @@ from jaxrefl.classify import T_DIFF, T_NONE, T_SPEC
 from jaxrefl.inverse_photon import PhotonOptions, estimate_photon
 from jaxrefl.local import LocalOptions, prepare_rows
 from jaxrefl.photon import PhotonReplay
-from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity, light_configs
+from jaxrefl.radiosity import RadiosityOptions, config_cameras, estimate_radiosity, light_configs
 from jaxrefl.raycast import RayCaster
 from jaxrefl.relight import truth_estimate
 from jaxrefl.rig import observation_geometry
@@ -78,14 +78,6 @@ def direct_observations(scan, pd, ps, alpha, caster) -> np.ndarray:
     return np.where(lit[..., None] & np.isfinite(radiance), radiance, 0.0)
 
 
-def observation_cameras(scan, configs) -> np.ndarray:
-    """`(N, C, 3)` camera of each (point, light configuration): the point's camera under that
-    configuration where it has one, else a point on its normal (never gathered)."""
-    out = scan.vertices[:, None, :] + scan.normals[:, None, :] + np.zeros((1, len(configs.positions), 1))
-    out[np.arange(scan.n_points)[:, None], configs.index] = scan.camera_positions()
-    return out
-
-
 def rerender(scan, pd, ps, alpha, caster, photons: int, light_bin: float, seed: int):
     """Every observation re-rendered `(N, M, 3)`: direct + photon-mapped interreflection,
     photons traced from `(pd, ps, alpha)` itself; `photons` per light (shared by the
@@ -98,7 +90,7 @@ def rerender(scan, pd, ps, alpha, caster, photons: int, light_bin: float, seed: 
     per_cfg = int(max(1000, round(photons * scan.n_lights / n_cfg)))
     params = tuple(np.asarray(x, np.float64) for x in (pd, ps, alpha))
     replay = PhotonReplay.build(caster, scan.vertices, scan.faces, scan.normals, configs.positions,
-                                scan.intensities()[configs.light], observation_cameras(scan, configs), params,
+                                scan.intensities()[configs.light], config_cameras(scan, configs), params,
                                 n_photons=per_cfg, seed=seed)
     image = direct + indirect_observations(replay, configs, *params)
     return image, replay, configs, {"configurations": n_cfg, "photons_per_configuration": per_cfg,

@@ -67,7 +67,7 @@ from .lm import gauss_newton_1d
 from .local import INTERPOLATED, MEASURED, UNRESOLVED, Estimate, LocalOptions, _noise_weights, \
     estimate_local, fill_unobserved_pd, finite_outputs, prepare_rows, quantisation_step
 from .photon import PhotonReplay, replay_parts
-from .radiosity import light_configs
+from .radiosity import config_cameras, light_configs
 from .raycast import RayCaster
 
 __all__ = ["PhotonOptions", "estimate_photon", "ALPHA_RANGE"]
@@ -368,16 +368,6 @@ def _final(data, static, index, rows, theta):
                 d=d, q=q)
 
 
-def _observation_cameras(scan, configs):
-    """`(N, C, 3)` camera of each (point, configuration): the observation's camera where
-    the point is observed under that configuration, else a point on its normal."""
-    cam = scan.camera_positions()
-    n = scan.n_points
-    out = scan.vertices[:, None, :] + scan.normals[:, None, :] + np.zeros((1, len(configs.positions), 1))
-    out[np.arange(n)[:, None], configs.index] = cam
-    return out
-
-
 def _start(est: Estimate):
     """A valid Ward start/proposal from a Method I estimate."""
     pd = np.clip(est.pd, 0.0, 1.0)
@@ -436,7 +426,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     t0 = time.perf_counter()
     pd0, ps0, alpha0 = _start(init)
     replay = PhotonReplay.build(caster, scan.vertices, scan.faces, scan.normals, configs.positions,
-                                scan.intensities()[configs.light], _observation_cameras(scan, configs),
+                                scan.intensities()[configs.light], config_cameras(scan, configs),
                                 (pd0, ps0, alpha0), n_photons=photons, target_photons=options.target_photons,
                                 seed=options.seed)
     timings["trace"] = time.perf_counter() - t0

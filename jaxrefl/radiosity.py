@@ -225,6 +225,15 @@ def light_configs(light_pos, n_points: int, light_bin: float = 0.1) -> LightConf
     return LightConfigs(np.concatenate(positions), np.concatenate(light), index)
 
 
+def config_cameras(scan, configs: LightConfigs) -> np.ndarray:
+    """`(N, C, 3)` camera of each (point, configuration): the observation's camera where
+    the point is observed under that configuration, else a point on its normal (a
+    gather there is never used)."""
+    out = scan.vertices[:, None, :] + scan.normals[:, None, :] + np.zeros((1, len(configs.positions), 1))
+    out[np.arange(scan.n_points)[:, None], configs.index] = scan.camera_positions()
+    return out
+
+
 def first_bounce_correction(caster: RayCaster, ff: FormFactors, normals, light_pos, configs: LightConfigs,
                             intensity, *, e_cfg=None, points=None) -> np.ndarray:
     """`(nnz, M)` exact-light correction of the first interreflection bounce for
