@@ -311,6 +311,9 @@ def estimate_to_file(scan_path, out, args) -> dict:
     t0 = time.perf_counter()
     scan = load_scan(scan_path)
     load_seconds = time.perf_counter() - t0
+    photon = {"photons": args.photons, "iterations": args.iterations, "solver": args.photon_solver,
+              "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
+              "min_snr": args.min_snr, "window": args.window}
     if args.method == "radiosity":
         from .radiosity import RadiosityOptions, estimate_radiosity
 
@@ -321,20 +324,13 @@ def estimate_to_file(scan_path, out, args) -> dict:
 
         from .inverse_photon import PhotonOptions, estimate_photon
 
-        est = estimate_photon(scan, PhotonOptions(photons=args.photons, iterations=args.iterations,
-                                                  solver=args.photon_solver, damping=args.damping,
-                                                  retrace_ess=args.retrace_ess, light_bin=args.light_bin,
-                                                  min_snr=args.min_snr, window=args.window,
-                                                  local=dataclasses.replace(options, model="ward")))
+        est = estimate_photon(scan, PhotonOptions(**photon, local=dataclasses.replace(options, model="ward")))
     elif args.method == "auto":
         from .auto import AutoOptions, estimate_auto
         from .radiosity import RadiosityOptions
 
         if not args.target_error > 0:
             raise ValueError(f"target-error: must be > 0, got {args.target_error}")
-        photon = {"photons": args.photons, "iterations": args.iterations, "solver": args.photon_solver,
-                  "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
-                  "min_snr": args.min_snr, "window": args.window}
         est = estimate_auto(scan, AutoOptions(
             target_error=args.target_error, local=options, photon=photon,
             radiosity=RadiosityOptions(rays=args.rays, light_bin=args.light_bin, outer=args.outer, paper=args.paper)))
