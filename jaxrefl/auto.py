@@ -463,8 +463,8 @@ def _run(method: str, scan, options: AutoOptions, caster, points=None) -> Estima
     raise ValueError(f"method: unknown {method!r}")
 
 
-def _merge(local: Estimate, other: Estimate | None, use_other: np.ndarray) -> Estimate:
-    if other is None or not use_other.any():
+def _merge(local: Estimate, other: Estimate, use_other: np.ndarray) -> Estimate:
+    if not use_other.any():
         return dataclasses.replace(local, meta=dict(local.meta))
     pick = lambda a, b: np.where(use_other.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)  # noqa: E731
     fields = ("pd", "ps", "roughness", "status", "std_pd", "std_ps", "std_roughness", "specular_identifiable",
@@ -512,8 +512,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         others[k] = _run(k, scan, options, caster, points=p.method == METHODS.index(k))
         seconds[k] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    use_other = p.method > 0
-    est = _merge(measures.local, None, use_other)
+    est = dataclasses.replace(measures.local, meta=dict(measures.local.meta))
     for k, other in others.items():
         est = _merge(est, other, p.method == METHODS.index(k))
     seconds["merge"] = time.perf_counter() - t0
@@ -533,7 +532,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         choice = "+".join(k for k in METHODS if counts.get(k, 0) > 0)
         needing = [r for r in p.regions if r["needed"] == p.run]
         short = [r for r in needing if max(r["predicted"][p.run].values()) > t]
-        reason = (f"{len(p.regions)} region(s), {int(use_other.sum())} of {scan.n_points} points, where Method I's "
+        reason = (f"{len(p.regions)} region(s), {int(np.count_nonzero(p.method))} of {scan.n_points} points, where Method I's "
                   f"predicted error misses the target {t:g}; {' / '.join(p.runs)}: the cheapest method predicted "
                   "to meet it there")
         if short:
