@@ -122,13 +122,13 @@ def paper_point(resolution, photons, iterations):
 def speed_error_plot(res, path):
     """Errors and seconds against photons per light (20 iterations, lm), the iteration
     and solver settings beside them, and the paper's point on the seconds axis."""
-    import matplotlib.figure
+    from jaxrefl.render import new_figure
 
     rows = res["glossy"]["rows"]
     sweep = sorted((r for r in rows if r.get("iterations") == 20 and r.get("solver") == "lm"),
                    key=lambda r: r["photons"])
     others = [r for r in rows if "photons" in r and r not in sweep]
-    fig = matplotlib.figure.Figure(figsize=(11, 4.2))
+    fig = new_figure(figsize=(11, 4.2))
     ax1, ax2 = fig.subplots(1, 2)
     x = [r["photons"] for r in sweep]
     for key, label, style in (("near", "pd, within 2 cm of the fold", "o-"), ("far", "pd, farther", "s-"),
