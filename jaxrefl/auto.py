@@ -227,32 +227,43 @@ def interreflection_ratios(scan, est: Estimate, ff: FormFactors, rows: dict) -> 
 
     use, e = rows["use"], rows["e"]
     sample = np.where((use & (rows["classes"] == T_DIFF)).any(1)[:, None], use & (rows["classes"] == T_DIFF), use)
-    u, v, f = ff.rows.astype(np.int64), ff.cols.astype(np.int64), ff.values
+    n = scan.n_points
     pd = np.clip(est.pd.mean(axis=1), 0.0, 1.0)
+    e_used = np.where(sample, e, 0.0)
+    direct = e_used.sum(axis=1)
+    # diffuse: sum over the samples m of u of sum_v F_uv pd_v E_vm
+    diffuse = np.einsum("nm,nm->n", sample, ff.matrix @ (pd[:, None] * e))
+    # specular: only entries whose sender has a lobe, and only (entry, light) pairs where u uses
+    # the sample and v is lit, evaluated in fixed-size chunks (one compiled shape)
+    u, v, f = ff.rows.astype(np.int64), ff.cols.astype(np.int64), ff.values
+    lobed = np.flatnonzero((est.ps[v] > 0) & (est.roughness[v] > 0))
+    entry, light = np.nonzero(sample[u[lobed]] & (e[v[lobed]] > 0))
+    entry = lobed[entry]
+    specular = np.zeros(n)
     lobe = brdf.MODELS[est.model][1]
-    has_lobe = (est.ps[v] > 0) & (est.roughness[v] > 0)
-    ln_rough = np.log(np.where(has_lobe, est.roughness[v], 1.0))
-    to_u = scan.vertices[u] - scan.vertices[v]
-    to_u /= np.maximum(np.linalg.norm(to_u, axis=1, keepdims=True), 1e-300)
-    n_v = scan.normals[v]
-    cos_o = np.einsum("kj,kj->k", n_v, to_u)
     lights = scan.light_positions()
-    diffuse, specular = np.zeros(scan.n_points), np.zeros(scan.n_points)
-    direct = np.where(sample, e, 0.0).sum(axis=1)
-    for m in range(scan.n_lights):  # a loop over lights, each a batch of form-factor entries
-        w = sample[:, m]
-        if not w.any():
-            continue
-        to_l = lights[v, m] - scan.vertices[v]
+    for lo in range(0, len(entry), _PAIRS):
+        k, m = entry[lo:lo + _PAIRS], light[lo:lo + _PAIRS]
+        pad = _PAIRS - len(k)
+        k, m = np.pad(k, (0, pad), mode="edge"), np.pad(m, (0, pad), mode="edge")
+        uk, vk = u[k], v[k]
+        to_u = scan.vertices[uk] - scan.vertices[vk]
+        to_u /= np.maximum(np.linalg.norm(to_u, axis=1, keepdims=True), 1e-300)
+        to_l = lights[vk, m] - scan.vertices[vk]
         to_l /= np.maximum(np.linalg.norm(to_l, axis=1, keepdims=True), 1e-300)
-        cos_i = np.einsum("kj,kj->k", n_v, to_l)
-        theta_r = np.asarray(brdf.half_angle(n_v, to_l, to_u))
-        f_s = np.asarray(lobe(np.where(has_lobe, est.ps[v], 0.0), ln_rough, cos_i, cos_o, theta_r))
-        diffuse += w * np.bincount(u, f * pd[v] * e[v, m], minlength=scan.n_points)
-        specular += w * np.bincount(u, np.pi * f * f_s * e[v, m], minlength=scan.n_points)
+        n_v = scan.normals[vk]
+        cos_i, cos_o = np.einsum("kj,kj->k", n_v, to_l), np.einsum("kj,kj->k", n_v, to_u)
+        theta_r = brdf.half_angle(n_v, to_l, to_u)
+        f_s = np.asarray(lobe(est.ps[vk], np.log(est.roughness[vk]), cos_i, cos_o, theta_r))
+        contrib = np.pi * f[k] * f_s * e[vk, m]
+        contrib[len(contrib) - pad:] = 0.0
+        specular += np.bincount(uk, contrib, minlength=n)
     ok = direct > 0
     ratio = lambda x: np.where(ok, x / np.where(ok, direct, 1.0), 0.0)  # noqa: E731
     return ratio(diffuse), ratio(specular)
+
+
+_PAIRS = 1 << 16  # (form-factor entry, light) pairs per lobe evaluation in `interreflection_ratios`
 
 
 def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None = None) -> Measures:
@@ -264,11 +275,11 @@ def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None
                       seed=options.radiosity.seed, caster=caster)
     t_ff = time.perf_counter() - t0
     t0 = time.perf_counter()
-    local = estimate_local(scan, options.local, caster)
+    rows = prepare_rows(scan, options.local.thresholds, caster)
+    local = estimate_local(scan, options.local, caster, rows=rows)
     t_local = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    rows = prepare_rows(scan, options.local.thresholds, caster)
     g, s = interreflection_ratios(scan, local, ff, rows)
     rel_pd = _relative_std(local.std_pd.mean(axis=1), np.maximum(local.pd.mean(axis=1), 0.01), local.pd_measured)
     rel_ps = _relative_std(local.std_ps, local.ps, local.specular_identifiable)
