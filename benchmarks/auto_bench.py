@@ -277,29 +277,75 @@ def calibrate(rows, bins: int = 8, log=None) -> auto.ErrorModel:
                 extra[f"radiosity_noise_{q}"] = round(float(t[2]), 4)
                 label = f"a, b = {values[q][mi]}, noise {extra[f'radiosity_noise_{q}']}"
             else:
-                # Method III models the light a lobe carries (no term in s); its Monte Carlo error
-                # grows with the interreflected light it estimates and with k (few photons per point),
-                # and it refits every point from photon-replayed images: noise ~ spread * k everywhere.
+                # Method III's Monte Carlo error grows with the interreflected light it estimates and
+                # with k (few photons per point), and it refits every point from photon-replayed
+                # images: noise ~ spread * k everywhere. It models the light a lobe carries, but
+                # whether it removes it is the data's to say: a term in s as for Methods I and II.
                 floor = extra.get("photon_noise", 0.005)
                 free_floor = q == "pd"
 
                 def pm(t, g, s, n, pk, free_floor=free_floor, floor=floor):
-                    f = t[3] if free_floor else floor
-                    return np.median(np.sqrt(noise(n, scale) ** 2 + ((t[0] + t[1] * pk) * g) ** 2 + f**2
-                                             + (t[2] * pk) ** 2))
+                    f = t[4] if free_floor else floor
+                    return np.median(np.sqrt(noise(n, scale) ** 2 + ((t[0] + t[1] * pk) * g + t[3] * s) ** 2
+                                             + f**2 + (t[2] * pk) ** 2))
 
-                t, loss = _fit(groups, pm, [0.1, 0.5, 0.01] + ([floor] if free_floor else []))
-                values[q][mi] = (round(float(t[0]), 3), 0.0)
+                t, loss = _fit(groups, pm, [0.1, 0.5, 0.01, 0.5] + ([floor] if free_floor else []))
+                values[q][mi] = (round(float(t[0]), 3), round(float(t[3]), 3))
                 extra[f"photon_mc_{q}"] = round(float(t[1]), 3)
                 extra[f"photon_spread_{q}"] = round(float(t[2]), 4)
                 if free_floor:
-                    extra["photon_noise"] = round(float(t[3]), 4)
-                label = f"a {values[q][mi][0]}, mc {extra[f'photon_mc_{q}']}, spread {extra[f'photon_spread_{q}']}"
+                    extra["photon_noise"] = round(float(t[4]), 4)
+                label = (f"a, b = {values[q][mi]}, mc {extra[f'photon_mc_{q}']}, "
+                         f"spread {extra[f'photon_spread_{q}']}")
             line = f"{q} {k}: {label} (loss {loss:.3f}, {len(groups)} bins)"
             print("  calibrated " + line, flush=True)
             if log is not None:
                 log.append(line)
-    return auto.ErrorModel(pd=tuple(values["pd"]), ps=tuple(values["ps"]), **extra)
+    model = auto.ErrorModel(pd=tuple(values["pd"]), ps=tuple(values["ps"]), **extra)
+    spread = uncertainty(rows, model, bins)
+    for q in ("pd", "ps"):
+        line = f"{q} uncertainty (local/radiosity, local/photon, radiosity/photon): {spread[q]}"
+        print("  calibrated " + line, flush=True)
+        if log is not None:
+            log.append(line)
+    return dataclasses.replace(model, uncertainty_pd=spread["pd"], uncertainty_ps=spread["ps"])
+
+
+def uncertainty(rows, model: auto.ErrorModel, bins: int = 8) -> dict:
+    """Per quantity and pair of methods (local/radiosity, local/photon, radiosity/photon): the
+    weighted RMS over bins of points (per scene, equal-count bins of `g + s`, weights as in
+    `_fit` from the larger of the two measured errors) of `log(measured ratio / predicted
+    ratio)` of the two methods' median errors: how far the model's comparison of two methods
+    can be trusted."""
+    out = {}
+    for qi, q in enumerate(("pd", "ps")):
+        terms = {pair: [] for pair in ((0, 1), (0, 2), (1, 2))}
+        for r in rows:
+            c = r["calibration"]
+            f, errors = c["features"], c["errors"]
+            if _failed(errors["local"][0]):
+                continue
+            ran = [k for k in auto.METHODS if k in errors and not _failed(errors[k][0])]
+            m = auto.Measures(mass=f["gain_diffuse"], gain_diffuse=f["gain_diffuse"], gain_specular=f["gain_specular"],
+                              rel_std_pd=f["rel_std_pd"], rel_std_ps=f["rel_std_ps"], local=None, ff=None, seconds={},
+                              photon_k=c["photon_k"])
+            pred = auto.predict(m, model, ran)
+            x = f["gain_diffuse"] + f["gain_specular"]
+            for (i, j), acc in terms.items():
+                a, b = auto.METHODS[i], auto.METHODS[j]
+                if a not in ran or b not in ran:
+                    continue
+                idx = np.flatnonzero(np.isfinite(errors[a][qi]) & np.isfinite(errors[b][qi]))
+                idx = idx[np.argsort(x[idx], kind="stable")]
+                for chunk in np.array_split(idx, max(1, min(bins, len(idx) // 20))):
+                    if len(chunk) < 10:
+                        continue
+                    ma, mb = (max(float(np.median(errors[k][qi][chunk])), 1e-6) for k in (a, b))
+                    pa, pb = (max(float(np.median(pred[k][q][chunk])), 1e-6) for k in (a, b))
+                    acc.append((min(1.0, max(ma, mb) / _WEIGHT_BELOW), np.log(ma / mb) - np.log(pa / pb)))
+        out[q] = tuple(round(float(np.sqrt(sum(w * d * d for w, d in v) / sum(w for w, _ in v))), 3) if v else 0.0
+                       for v in terms.values())
+    return out
 
 
 # -- report -------------------------------------------------------------------------------------

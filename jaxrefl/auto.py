@@ -26,26 +26,36 @@ Method I leaves all the interreflected light in its fit (`a_I`, `b_I`), Method I
 removes the diffuse part but not what a specular lobe carries (`b_II`) and adds
 its own noise (a floor in quadrature), Method III removes both at the cost of its
 Monte Carlo error, which grows with the light it estimates and falls with the
-photons each light configuration gets: `bias_III = (a_III + c k) g`,
+photons each light configuration gets: `bias_III = (a_III + c k) g + b_III s`,
 `k = sqrt(points / photons per configuration)`, plus a floor and `spread k` (noise
-at every point) in quadrature.
+at every point) in quadrature. The calibration also measures how far the model's
+*comparison* of two methods can be trusted: per pair, the spread of the log ratio of
+measured to predicted error ratios over bins of points (`uncertainty_pd`, `_ps`;
+about a factor 1.5 for pd).
 
 **Choice**: methods are ranked by cost (local < radiosity < photon, as measured
-on Objects A-D at the benchmark's settings: `RESULTS_auto.md`). A point
-*needs a global method* where Method I's predicted error exceeds
-`max(target, (1 + tolerance) * best)`, `best` the lowest predicted error of any
-available method (a target below what any method reaches asks only for the best
-reachable, within the tolerance). Regions are the connected components (mesh
-edges) of that mask with at least `min_region` points, dilated by `rings`
-rings; per region the cheapest method whose predicted median errors meet the
-same rule is chosen. The most capable method any region needs is run: Method
-III on the whole object, Method II for the regions' points only (the rest of
-the object enters its radiosity with Method I's albedo; its cost is the light
-configurations the regions' observations use). Its result is used inside the
-regions and at the points outside them where it is predicted to beat Method I
-at no extra cost (`_extension`); everywhere else Method I's result stands (it
-is what was fitted to measure the scene, and where interreflection is
-negligible it is at least as accurate: `RESULTS_auto.md`).
+on Objects A-D at the benchmark's settings: `RESULTS_auto.md`). A method is *good
+enough* where its predicted error is at most `max(target, (1 + tolerance) * best)`,
+`best` the lowest predicted error of the other methods each times the model's
+uncertainty on its ratio to this one (`ErrorModel.margin`): a costlier method is
+only worth it where it is predicted better by more than the tolerance and more than
+the model can tell apart (a target below what any method reaches asks only for the
+best reachable). A point *needs a global method* where Method I is not good enough.
+Regions are the connected components (mesh edges) of that mask with at least
+`min_region` points, dilated by `rings` rings; per region the cheapest method whose
+predicted median errors are good enough is chosen. The most capable method any
+region needs is run: Method III on the whole object, Method II for the regions'
+points only (the rest of the object enters its radiosity with Method I's albedo;
+its cost is the light configurations the regions' observations use). Its pd is used inside the
+regions and at the points outside them where it is predicted to beat Method I at no
+extra cost (`_extension`); everywhere else Method I's result stands (it is what was
+fitted to measure the scene, and where interreflection is negligible it is at least
+as accurate: `RESULTS_auto.md`). **ps and roughness** come from the same method only
+where its ps is predicted better than Method I's by more than the tolerance and the
+uncertainty (`_own_ps`), else from Method I (its fit is at hand everywhere; with the
+calibrated model neither global method's ps is predicted better, and the seed-0
+scans agree except on Object B), so a region's method is chosen for its pd and what
+the merge will use for ps.
 
 Method III (`jaxrefl.inverse_photon`) is imported only when needed; it fits the
 Ward model, so it is a candidate only with `local.model == 'ward'` and when the
@@ -82,34 +92,49 @@ _PD_FLOOR = 0.05  # albedo below which a point's own relative quantities are not
 class ErrorModel:
     """Coefficients of `e = sqrt(noise^2 + bias^2 [+ photon_noise^2])` per method
     (`METHODS` order). `pd` and `ps` hold `(a, b)`: `bias = a g + b s` for Methods I and
-    II; Method III's `bias = (a + photon_mc * k) g` (its Monte Carlo error grows with the
+    II; Method III's `bias = (a + photon_mc * k) g + b s` (its Monte Carlo error grows with the
     interreflected light it estimates and with `k = sqrt(points / photons per light
-    configuration)`), `b` unused (0), and its Monte Carlo noise `photon_spread * k` at every
+    configuration)`), and its Monte Carlo noise `photon_spread * k` at every
     point (it refits all of them from photon-replayed images) adds to the floor
     `photon_noise` in quadrature; Method II's own noise (form-factor rays, light
     configurations, its separate specular fit) is `radiosity_noise`. `noise` is `noise_scale_pd` (`_ps`) times Method
     I's relative standard deviation where the point has its own estimate, else
     `unknown_pd` (`unknown_ps`: the error of a value filled from neighbours), at most 1.
-    Fitted by `benchmarks/auto_bench.py --calibrate` (`RESULTS_auto.md`)."""
+
+    `uncertainty_pd` (`_ps`): how far the model's predicted ratio of two methods' errors
+    is from the measured one, per pair (local/radiosity, local/photon, radiosity/photon):
+    the weighted RMS of `log(measured ratio / predicted ratio)` over the calibration's bins
+    of points. A method is preferred to another only where it is predicted better by more
+    than `exp(uncertainty)` (`margin`). Fitted by `benchmarks/auto_bench.py --calibrate`
+    (`RESULTS_auto.md`)."""
 
     # `python3 -m benchmarks.auto_bench --calibrate --repeats 0 --seed 0 --tilt 30`: Objects A-D, V,
     # E (diffuse, glossy; Ward and Torrance-Sparrow), resolution 32; see RESULTS_auto.md.
-    pd: tuple = ((0.799, 2.513), (0.0, 2.368), (0.362, 0.0))
-    ps: tuple = ((0.0, 0.0), (0.0, 0.0), (0.771, 0.0))
-    photon_mc_pd: float = 0.441
-    photon_mc_ps: float = 1.844
-    noise_scale_pd: float = 0.543
+    pd: tuple = ((0.794, 2.773), (0.0, 2.825), (0.0, 1.112))
+    ps: tuple = ((0.0, 0.0), (0.0, 0.0), (0.0, 1.646))
+    photon_mc_pd: float = 0.685
+    photon_mc_ps: float = 2.514
+    noise_scale_pd: float = 0.558
     noise_scale_ps: float = 0.344
     unknown_pd: float = 0.132
     unknown_ps: float = 0.03
-    photon_noise: float = 0.0074
+    photon_noise: float = 0.0072
     photon_spread_pd: float = 0.0
-    photon_spread_ps: float = 0.0388
-    radiosity_noise_pd: float = 0.0054
-    radiosity_noise_ps: float = 0.0116
+    photon_spread_ps: float = 0.0349
+    radiosity_noise_pd: float = 0.0053
+    radiosity_noise_ps: float = 0.0121
+    uncertainty_pd: tuple = (0.402, 0.458, 0.416)
+    uncertainty_ps: tuple = (0.392, 0.973, 1.172)
 
     def coefficients(self, quantity: str, method: str) -> tuple[float, float]:
         return getattr(self, quantity)[METHODS.index(method)]
+
+    def margin(self, quantity: str, a: str, b: str) -> float:
+        """`exp(uncertainty)` of the predicted ratio of `a`'s and `b`'s errors (1 for a == b)."""
+        if a == b:
+            return 1.0
+        i, j = sorted((METHODS.index(a), METHODS.index(b)))
+        return float(np.exp(getattr(self, f"uncertainty_{quantity}")[i + j - 1]))
 
     def noise(self, quantity: str, rel_std) -> np.ndarray:
         """Error `(N,)` no method removes, from Method I's relative std (inf: no own estimate)."""
@@ -121,7 +146,7 @@ class ErrorModel:
         """Predicted relative bias `(N,)` of `method` from the gains `g`, `s` `(N,)`."""
         a, b = self.coefficients(quantity, method)
         if method == "photon":
-            return (a + getattr(self, f"photon_mc_{quantity}") * photon_k) * g
+            return (a + getattr(self, f"photon_mc_{quantity}") * photon_k) * g + b * s
         return a * g + b * s
 
 
@@ -308,12 +333,14 @@ def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHOD
 
 @dataclass
 class Plan:
-    """`method` `(N,)` index into `METHODS` used at each point; `run` the global method
-    to run (None: Method I alone); `regions` one dict per region; `needs_global` `(N,)`
-    the mask before regions were formed; `predicted` per-method scene medians and
-    those of the plan; `extended` `(N,)` points outside the regions that take a global
-    method's result as well (`_extension`); `runs` every global method to run, cheapest
-    first (`run` is the last)."""
+    """`method` `(N,)` index into `METHODS` whose pd is used at each point; `ps_method` `(N,)`
+    the one whose ps and roughness are used (Method I's wherever the point's own method is not
+    predicted better in ps by more than the tolerance and the model's uncertainty:
+    `_own_ps`); `run` the most capable global method run (None: Method I alone); `regions`
+    one dict per region; `needs_global` `(N,)` the mask before regions were formed;
+    `predicted` per-method scene medians and those of the plan; `extended` `(N,)` points
+    outside the regions that take a global method's result as well (`_extension`); `runs`
+    every global method to run, cheapest first (`run` is the last)."""
 
     method: np.ndarray
     run: str | None
@@ -322,17 +349,37 @@ class Plan:
     predicted: dict
     extended: np.ndarray | None = None
     runs: tuple = ()
+    ps_method: np.ndarray | None = None
 
 
-def _meets(errors: dict, candidates, target: float, tolerance: float, reduce=lambda e: e):
-    """For each candidate: its (reduced) pd and ps errors meet `max(target, (1 + tol) best)`."""
+def _own_ps(errors: dict, method: str, model: ErrorModel, tolerance: float) -> np.ndarray:
+    """`(N,)` where `method`'s own ps is used: it is predicted better than Method I's (which is
+    at hand wherever anything runs) by more than the tolerance and the model's uncertainty."""
+    if method == "local":
+        return np.ones(np.shape(errors["local"]["ps"]), bool)
+    return (errors[method]["ps"] * (1.0 + tolerance) * model.margin("ps", "local", method)
+            < errors["local"]["ps"])
+
+
+def _effective(errors: dict, model: ErrorModel, tolerance: float) -> dict:
+    """The errors each method leads to in the merge: its own pd, and its own ps only where
+    `_own_ps` (else Method I's)."""
+    return {k: {"pd": v["pd"], "ps": np.where(_own_ps(errors, k, model, tolerance), v["ps"], errors["local"]["ps"])}
+            for k, v in errors.items()}
+
+
+def _meets(errors: dict, candidates, target: float, tolerance: float, model: ErrorModel, reduce=lambda e: e):
+    """For each candidate `j`: its (reduced) pd and ps errors meet `max(target, (1 + tol) best_j)`,
+    `best_j` the lowest of the others' errors times the model's uncertainty on their ratio to
+    `j`'s (`ErrorModel.margin`): a method is good enough unless another is predicted better by
+    more than the tolerance and what the model cannot tell apart."""
     ok = {}
     for q in ("pd", "ps"):
-        vals = {k: reduce(errors[k][q]) for k in candidates}
-        best = np.minimum.reduce([np.asarray(v) for v in vals.values()])
-        limit = np.maximum(target, (1.0 + tolerance) * best)
-        for k in candidates:
-            ok[k] = ok.get(k, True) & (np.asarray(vals[k]) <= limit)
+        vals = {k: np.asarray(reduce(errors[k][q])) for k in candidates}
+        for j in candidates:
+            best = np.minimum.reduce([vals[k] * model.margin(q, j, k) for k in candidates])
+            limit = np.maximum(target, (1.0 + tolerance) * best)
+            ok[j] = ok.get(j, True) & (vals[j] <= limit)
     return ok
 
 
@@ -341,15 +388,15 @@ def _median(e):
 
 
 def _shortfall(errors: dict, candidates, method: str, core, options) -> tuple:
-    """Ratios of `method`'s median pd and ps errors in `core` to their limits
-    `max(target, (1 + tolerance) best)`, each floored at 1 (within the limit): compared
-    pd first (the albedo is what every method estimates; ps only where a lobe is seen),
-    then ps, then cost."""
+    """Ratios of `method`'s median pd and ps errors in `core` to their limits (`_meets`), each
+    floored at 1 (within the limit): compared pd first (the albedo is what every method
+    estimates; ps only where a lobe is seen), then ps, then cost."""
     out = []
     for q in ("pd", "ps"):
-        best = min(_median(errors[k][q][core]) for k in candidates)
+        mine = _median(errors[method][q][core])
+        best = min(_median(errors[k][q][core]) * options.model.margin(q, method, k) for k in candidates)
         limit = max(options.target_error, (1.0 + options.tolerance) * best)
-        out.append(max(1.0, _median(errors[method][q][core]) / max(limit, 1e-12)))
+        out.append(max(1.0, mine / max(limit, 1e-12)))
     return tuple(out) + (METHODS.index(method),)
 
 
@@ -357,9 +404,10 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     """Regions and a method per region (module docstring); `available` the runnable
     candidates (default `options.methods`)."""
     available = [k for k in METHODS if k in (available if available is not None else options.methods)]
-    errors = predict(measures, options.model, available)
+    model = options.model
+    errors = _effective(predict(measures, model, available), model, options.tolerance)
     n = scan.n_points
-    needs = ~_meets(errors, available, options.target_error, options.tolerance)["local"]
+    needs = ~_meets(errors, available, options.target_error, options.tolerance, model)["local"]
     adjacency = vertex_adjacency(scan.faces, n)
 
     def components(mask):
@@ -385,7 +433,7 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     for r in range(labels.max() + 1):
         pts = labels == r
         core = pts & seeds  # the ring is a margin, not evidence: decide on the points that needed it
-        ok = _meets(errors, available, options.target_error, options.tolerance,
+        ok = _meets(errors, available, options.target_error, options.tolerance, model,
                     reduce=lambda e, core=core: _median(e[core]))
         choice = next((k for k in available if ok[k]), None)
         if choice is None:  # none is within the limits in both pd and ps: pd first, then ps
@@ -417,33 +465,43 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
         more = _extension(scan, errors, k, method, options)
         method[more] = METHODS.index(k)
         extended |= more
+    own = np.stack([_own_ps(errors, k, model, options.tolerance) if k in errors else np.zeros(n, bool)
+                    for k in METHODS])
+    ps_method = np.where(own[method, np.arange(n)], method, 0)
 
-    def plan_errors(q):
-        e = np.choose(method, [errors.get(k, {q: np.zeros(n)})[q] for k in METHODS])
-        return _median(e)
+    def plan_errors(q, which):
+        return _median(np.choose(which, [errors.get(k, {q: np.zeros(n)})[q] for k in METHODS]))
 
     predicted = {k: {q: _median(errors[k][q]) for q in ("pd", "ps")} for k in available}
-    predicted["plan"] = {q: plan_errors(q) for q in ("pd", "ps")}
-    return Plan(method, run, regions, needs, predicted, extended, runs)
+    predicted["plan"] = {"pd": plan_errors("pd", method), "ps": plan_errors("ps", ps_method)}
+    return Plan(method, run, regions, needs, predicted, extended, runs, ps_method)
 
 
-def _extension(scan, errors: dict, run: str, method, options: AutoOptions) -> np.ndarray:
-    """`(N,)` points outside the regions that take the global method `run` too: those where it
-    is predicted to beat Method I in pd (and not to lose more than the tolerance in ps) and
-    that add nothing to its cost. Method III runs on the whole object anyway; Method II makes
-    one light configuration per rack light and head position bin, so with per-point lights
-    only points whose configurations the regions use already come for free."""
-    better = ((errors[run]["pd"] < errors["local"]["pd"])
-              & (errors[run]["ps"] <= (1.0 + options.tolerance) * errors["local"]["ps"]) & (method == 0))
+def _configs_made(scan, points, options: AutoOptions):
+    """`(N,)` points all of whose Method II light configurations the observations of `points`
+    `(N,)` already make; None where every configuration is made anyway (fixed lights)."""
     light_pos = getattr(scan, "light_pos", None)
-    if run != "radiosity" or light_pos is None or np.ndim(light_pos) != 3 or not better.any():
-        return better
+    if light_pos is None or np.ndim(light_pos) != 3:
+        return None
     from .radiosity import light_configs
 
     index = light_configs(light_pos, scan.n_points, options.radiosity.light_bin).index
     made = np.zeros(index.max() + 1, bool)
-    made[index[method == METHODS.index("radiosity")]] = True
-    return better & made[index].all(axis=1)
+    made[index[points]] = True
+    return made[index].all(axis=1)
+
+
+def _extension(scan, errors: dict, run: str, method, options: AutoOptions) -> np.ndarray:
+    """`(N,)` points outside the regions that take the global method `run` too: those where it
+    is predicted to beat Method I in pd (their ps stays Method I's unless `_own_ps`) and
+    that add nothing to its cost. Method III runs on the whole object anyway; Method II makes
+    one light configuration per rack light and head position bin, so with per-point lights
+    only points whose configurations the regions use already come for free."""
+    better = (errors[run]["pd"] < errors["local"]["pd"]) & (method == 0)
+    if run != "radiosity" or not better.any():
+        return better
+    free = _configs_made(scan, method == METHODS.index("radiosity"), options)
+    return better if free is None else better & free
 
 
 # -- running it ------------------------------------------------------------------------------
@@ -474,14 +532,25 @@ def _run(method: str, scan, options: AutoOptions, caster, points=None) -> Estima
     raise ValueError(f"method: unknown {method!r}")
 
 
-def _merge(local: Estimate, other: Estimate, use_other: np.ndarray) -> Estimate:
-    if not use_other.any():
-        return dataclasses.replace(local, meta=dict(local.meta))
-    pick = lambda a, b: np.where(use_other.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)  # noqa: E731
-    fields = ("pd", "ps", "roughness", "status", "std_pd", "std_ps", "std_roughness", "specular_identifiable",
-              "pd_measured")
-    return dataclasses.replace(local, **{f: pick(getattr(local, f), getattr(other, f)) for f in fields},
-                               meta=dict(local.meta))
+_PD_FIELDS = ("pd", "std_pd", "pd_measured")
+_PS_FIELDS = ("ps", "roughness", "std_ps", "std_roughness", "specular_identifiable")
+
+
+def _merge(est: Estimate, other: Estimate, pd_from: np.ndarray, ps_from: np.ndarray) -> Estimate:
+    """`est` with `other`'s pd (and its std, `pd_measured`) at `pd_from` `(N,)` and its ps and
+    roughness (their stds, `specular_identifiable`) at `ps_from`; `status` the less certain of
+    the two sources'."""
+    if not (pd_from.any() or ps_from.any()):
+        return dataclasses.replace(est, meta=dict(est.meta))
+
+    def pick(field, mask):
+        a, b = getattr(est, field), getattr(other, field)
+        return np.where(mask.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)
+
+    out = {f: pick(f, pd_from) for f in _PD_FIELDS} | {f: pick(f, ps_from) for f in _PS_FIELDS}
+    out["status"] = np.where(pd_from | ps_from, np.maximum(pick("status", pd_from), pick("status", ps_from)),
+                             est.status).astype(est.status.dtype)
+    return dataclasses.replace(est, **out, meta=dict(est.meta))
 
 
 def _jsonable(x):
@@ -525,7 +594,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     t0 = time.perf_counter()
     est = dataclasses.replace(measures.local, meta=dict(measures.local.meta))
     for k, other in others.items():
-        est = _merge(est, other, p.method == METHODS.index(k))
+        est = _merge(est, other, p.method == METHODS.index(k), p.ps_method == METHODS.index(k))
     seconds["merge"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - t_start
 
@@ -544,7 +613,8 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         needing = [r for r in p.regions if r["needed"] == p.run]
         short = [r for r in needing if max(r["predicted"][p.run].values()) > t]
         reason = (f"{len(p.regions)} region(s), {int(np.count_nonzero(p.method))} of {scan.n_points} points, where Method I's "
-                  f"predicted error misses the target {t:g}; {' / '.join(p.runs)}: the cheapest method predicted "
+                  f"predicted error misses the target {t:g} and a global method is predicted better by more than "
+                  f"the tolerance and the model's uncertainty; {' / '.join(p.runs)}: the cheapest method predicted "
                   "to meet it there")
         if short:
             reason += (f" (in {len(short)} of them no candidate is predicted to meet it: {p.run} is the cheapest "
@@ -560,6 +630,8 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         "target_error": options.target_error, "tolerance": options.tolerance,
         "choice": choice, "reason": reason, "global_method": p.run, "global_methods": list(p.runs),
         "points_by_method": counts,
+        "ps_points_by_method": {k: int(np.sum(p.ps_method == i)) for i, k in enumerate(METHODS)
+                                if np.any(p.ps_method == i)},
         "candidates": available, "unavailable": unavailable, "notes": notes,
         "statistics": measures.statistics(),
         "predicted": p.predicted, "predicted_unavailable": best_unavailable,

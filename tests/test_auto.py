@@ -84,6 +84,15 @@ def test_interreflection_ratios_against_the_first_radiosity_bounce(fresh_cache):
     _, sharp = auto.interreflection_ratios(scan, est(0.1, 0.03), ff, rows)
     np.testing.assert_allclose(s2, 2 * s1, rtol=1e-9)
     assert s1.max() > 0 and sharp.max() > 2 * s1.max()
+    # the lobes are evaluated in chunks of (entry, light) pairs: small chunks, the same sums
+    monkeypatch_pairs = auto._PAIRS
+    try:
+        auto._PAIRS = 997
+        g_small, s_small = auto.interreflection_ratios(scan, est(0.1, 0.1), ff, rows)
+    finally:
+        auto._PAIRS = monkeypatch_pairs
+    np.testing.assert_allclose(s_small, s1, rtol=1e-12)
+    np.testing.assert_allclose(g_small, g, rtol=1e-12)
 
 
 def _fake_measures(n, gain):
@@ -103,16 +112,19 @@ def test_regions_are_components_dilated_by_rings_and_small_ones_are_dropped():
     options = auto.AutoOptions(target_error=0.05, min_region=8, rings=1, methods=("local", "radiosity"))
     p = auto.plan(scan, _fake_measures(len(v), gain), options)
     assert p.run == "radiosity" and len(p.regions) == 1
-    region = p.method == auto.METHODS.index("radiosity")
-    # one ring of the grid's triangulation around the 3 x 3 block; the lone point stays local
+    region = (p.method == auto.METHODS.index("radiosity")) & ~p.extended
+    # one ring of the grid's triangulation around the 3 x 3 block; the lone point is in no region
     assert region[block].all() and not region[lone] and 9 < region.sum() <= 25
     assert p.regions[0]["seed_points"] == 9 and p.regions[0]["points"] == region.sum()
     assert p.needs_global[lone]
+    # ... but, Method II running anyway (all its light configurations made: fixed lights), it takes
+    # its result where it is predicted better, and only there
+    assert p.extended[lone] and p.extended.sum() == 1
     # two rings grow it further; zero rings keep exactly the block
     wider = auto.plan(scan, _fake_measures(len(v), gain), dataclasses.replace(options, rings=2))
-    assert (wider.method > 0).sum() > region.sum()
+    assert ((wider.method > 0) & ~wider.extended).sum() > region.sum()
     exact = auto.plan(scan, _fake_measures(len(v), gain), dataclasses.replace(options, rings=0))
-    assert (exact.method > 0).sum() == 9
+    assert ((exact.method > 0) & ~exact.extended).sum() == 9
 
 
 def test_a_region_keeps_its_own_method_where_the_more_capable_one_is_predicted_worse():
@@ -130,6 +142,67 @@ def test_a_region_keeps_its_own_method_where_the_more_capable_one_is_predicted_w
     assert p.runs == ("radiosity", "photon") and p.run == "photon"
     assert np.all(p.method[diffuse] == 1) and np.all(p.method[lobes] == 2)
     assert np.all(p.method[~(diffuse | lobes)] == 0)
+
+
+def test_a_costlier_method_needs_a_predicted_gain_beyond_the_models_uncertainty():
+    """Method II predicted 1.5x better than Method I in a block: without uncertainty the block
+    takes Method II; with the calibrated uncertainty of their ratio above log(1.5 / 1.1) it
+    stays with Method I (the gain is within what the model cannot tell apart)."""
+    v, f = grid_plane(1.0, 21)
+    ij = np.stack(np.unravel_index(np.arange(len(v)), (21, 21)), 1)
+    block = (np.abs(ij[:, 0] - 10) <= 2) & (np.abs(ij[:, 1] - 10) <= 2)
+    scan = SimpleNamespace(faces=f, n_points=len(v))
+    model = auto.ErrorModel(pd=((1.0, 0.0), (0.0, 0.0), (0.0, 0.0)), noise_scale_pd=1.0, radiosity_noise_pd=0.0,
+                            uncertainty_pd=(0.0, 0.0, 0.0))
+    m = _fake_measures(len(v), np.where(block, np.sqrt(1.5**2 - 1) * 0.01, 0.0))  # local = 1.5 x radiosity
+    options = auto.AutoOptions(target_error=1e-3, rings=0, methods=("local", "radiosity"), model=model)
+    errors = auto.predict(m, model, ("local", "radiosity"))
+    np.testing.assert_allclose(errors["local"]["pd"][block] / errors["radiosity"]["pd"][block], 1.5)
+    trusted = auto.plan(scan, m, options)
+    assert trusted.run == "radiosity" and np.all(trusted.method[block] == 1) and np.all(trusted.method[~block] == 0)
+    for spread, expected in ((np.log(1.5 / 1.1) + 0.01, None), (np.log(1.5 / 1.1) - 0.01, "radiosity")):
+        unsure = dataclasses.replace(model, uncertainty_pd=(spread, 0.0, 0.0))
+        assert unsure.margin("pd", "local", "radiosity") == unsure.margin("pd", "radiosity", "local") > 1
+        assert unsure.margin("pd", "local", "local") == 1.0
+        p = auto.plan(scan, m, dataclasses.replace(options, model=unsure))
+        assert p.run == expected and np.all(p.method[block] == (expected is not None))
+
+
+def test_ps_stays_method_ones_unless_the_global_method_is_predicted_better():
+    """A region taking Method II keeps Method I's ps (and roughness) where Method II's ps is not
+    predicted better by more than the tolerance and the uncertainty; the merge takes pd and ps
+    from their own sources and the less certain status."""
+    v, f = grid_plane(1.0, 21)
+    ij = np.stack(np.unravel_index(np.arange(len(v)), (21, 21)), 1)
+    block = (np.abs(ij[:, 0] - 10) <= 3) & (np.abs(ij[:, 1] - 10) <= 3)
+    half = block & (ij[:, 0] < 10)
+    scan = SimpleNamespace(faces=f, n_points=len(v))
+    m = _fake_measures(len(v), np.where(block, 0.3, 0.0))
+    m.gain_specular = np.where(half, 0.1, 0.0)
+    # Method I's ps biased by the specular gain, Method II's not: Method II's ps is better on `half`
+    model = auto.ErrorModel(ps=((0.0, 1.0), (0.0, 0.0), (0.0, 0.0)))
+    p = auto.plan(scan, m, auto.AutoOptions(target_error=0.01, rings=0, methods=("local", "radiosity"), model=model))
+    assert np.all(p.method[block] == 1)
+    np.testing.assert_array_equal(p.ps_method, np.where(half, 1, 0))
+    # with Method II's ps no better anywhere (the calibrated model), Method I's ps is kept everywhere
+    p0 = auto.plan(scan, m, auto.AutoOptions(target_error=0.01, rings=0, methods=("local", "radiosity")))
+    assert np.all(p0.method[block] == 1) and np.all(p0.ps_method == 0)
+
+    n = len(v)
+
+    def est(value, status):
+        return Estimate(np.full((n, 3), value), np.full(n, value), np.full(n, value), np.full(n, status, np.int8),
+                        np.full((n, 3), value), np.full(n, value), np.full(n, value), np.full(n, value > 1),
+                        np.full(n, value > 1), "ward")
+
+    merged = auto._merge(est(1.0, 0), est(2.0, 1), p.method == 1, p.ps_method == 1)
+    np.testing.assert_array_equal(merged.pd[:, 0], np.where(block, 2.0, 1.0))
+    np.testing.assert_array_equal(merged.std_pd[:, 0], merged.pd[:, 0])
+    np.testing.assert_array_equal(merged.pd_measured, block)
+    for k in ("ps", "roughness", "std_ps", "std_roughness"):
+        np.testing.assert_array_equal(getattr(merged, k), np.where(half, 2.0, 1.0))
+    np.testing.assert_array_equal(merged.specular_identifiable, half)
+    np.testing.assert_array_equal(merged.status, np.where(block, 1, 0))
 
 
 def test_target_decides_and_an_unreachable_target_takes_the_cheapest_near_the_best():
@@ -206,6 +279,33 @@ def test_options_are_checked():
         auto.AutoOptions(target_error=0.0)
     with pytest.raises(ValueError, match="methods"):
         auto.AutoOptions(methods=("radiosity",))
+
+
+def test_uncertainty_is_the_spread_of_measured_against_predicted_ratios():
+    """`benchmarks.auto_bench.uncertainty`: 0 where every bin's measured ratio of two methods'
+    errors is the predicted one (whatever the level), log 2 where it is off by 2 either way."""
+    from benchmarks.auto_bench import uncertainty
+
+    model = auto.ErrorModel()
+    n = 400
+    g = np.linspace(0.0, 0.2, n)
+    f = {"gain_diffuse": g, "gain_specular": np.zeros(n), "rel_std_pd": np.full(n, 0.02),
+         "rel_std_ps": np.full(n, 0.05)}
+    m = auto.Measures(mass=g, gain_diffuse=g, gain_specular=f["gain_specular"], rel_std_pd=f["rel_std_pd"],
+                      rel_std_ps=f["rel_std_ps"], local=None, ff=None, seconds={})
+    pred = auto.predict(m, model, ("local", "radiosity"))
+
+    def row(factor):
+        errors = {k: (3.0 * pred[k]["pd"], 3.0 * pred[k]["ps"]) for k in ("local", "radiosity")}
+        errors["radiosity"] = tuple(e * factor for e in errors["radiosity"])
+        return {"calibration": {"features": f, "errors": errors, "photon_k": 0.0}}
+
+    exact = uncertainty([row(1.0)], model)
+    assert exact["pd"][0] == pytest.approx(0.0, abs=1e-9) and exact["ps"][0] == pytest.approx(0.0, abs=1e-9)
+    assert exact["pd"][1:] == (0.0, 0.0)  # no Method III runs: no spread
+    off = uncertainty([row(2.0), row(0.5)], model)
+    for q in ("pd", "ps"):  # rounded to 3 digits
+        assert off[q][0] == pytest.approx(np.log(2.0), abs=1e-3)
 
 
 def test_cli_estimate_auto(tmp_path):
