@@ -46,7 +46,8 @@ Regions are the connected components (mesh edges) of that mask with at least
 predicted median errors are good enough is chosen. The most capable method any
 region needs is run: Method III on the whole object, Method II for the regions'
 points only (the rest of the object enters its radiosity with Method I's albedo;
-its cost is the light configurations the regions' observations use). Its pd is used inside the
+its cost is the light configurations the regions' observations use; two
+alternations of pd and specular part, `radiosity_outer`). Its pd is used inside the
 regions and at the points outside them where it is predicted to beat Method I at no
 extra cost (`_extension`); everywhere else Method I's result stands (it is what was
 fitted to measure the scene, and where interreflection is negligible it is at least
@@ -159,7 +160,10 @@ class AutoOptions:
     `radiosity` the options of Methods I and II (the form factors are cast with
     `radiosity.rays` and `radiosity.seed`, Method I's options replace
     `radiosity.local`); `photon` keyword arguments of `PhotonOptions` (Method III);
-    `model` the error model."""
+    `model` the error model; `radiosity_outer` Method II's alternations of pd and the specular
+    part in the regions, at most `radiosity.outer`: its pd settles after two (seed-0 scans of
+    Objects A-D: region medians within 0.07 points of three; `RESULTS_auto.md`), and the third
+    refines a specular fit auto takes from Method I unless Method II's ps is predicted better."""
 
     target_error: float = 0.05
     tolerance: float = 0.1
@@ -170,14 +174,15 @@ class AutoOptions:
     radiosity: RadiosityOptions = field(default_factory=RadiosityOptions)
     photon: dict = field(default_factory=dict)
     model: ErrorModel = field(default_factory=ErrorModel)
+    radiosity_outer: int = 2
 
     def __post_init__(self):
         if not self.target_error > 0:
             raise ValueError(f"target_error: must be > 0, got {self.target_error}")
         if not self.tolerance >= 0:
             raise ValueError(f"tolerance: must be >= 0, got {self.tolerance}")
-        if self.rings < 0 or self.min_region < 1:
-            raise ValueError("rings: must be >= 0; min_region: must be >= 1")
+        if self.rings < 0 or self.min_region < 1 or self.radiosity_outer < 1:
+            raise ValueError("rings: must be >= 0; min_region, radiosity_outer: must be >= 1")
         unknown = set(self.methods) - set(METHODS)
         if unknown or "local" not in self.methods:
             raise ValueError(f"methods: a subset of {METHODS} including 'local', got {self.methods}")
@@ -523,8 +528,9 @@ def photon_available(model: str) -> tuple[bool, str]:
 def _run(method: str, scan, options: AutoOptions, caster, points=None) -> Estimate:
     """Run `method`; Method II only for `points` (its cost shrinks with the regions)."""
     if method == "radiosity":
-        return estimate_radiosity(scan, dataclasses.replace(options.radiosity, local=options.local), caster,
-                                  points=points)
+        outer = min(options.radiosity.outer, options.radiosity_outer)
+        return estimate_radiosity(scan, dataclasses.replace(options.radiosity, local=options.local, outer=outer),
+                                  caster, points=points)
     if method == "photon":
         from .inverse_photon import PhotonOptions, estimate_photon
 

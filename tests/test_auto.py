@@ -249,6 +249,7 @@ def test_fold_needs_inverse_radiosity_and_the_form_factors_are_cast_once(fold_sc
     assert a["global_method"] == "radiosity" and "radiosity" in a["choice"]
     assert "photon" in a["unavailable"] and "Ward" in a["unavailable"]["photon"]
     assert "radiosity" in est.meta["runs"] and est.meta["seconds"]["radiosity"] > 0
+    assert len(est.meta["runs"]["radiosity"]["outer_iterations"]) == options.radiosity_outer == 2
     # all the casts happened while measuring: Method II read the form factors from the cache
     n_chunks = -(-fold_scan.n_points // (formfactors._RAYS_PER_TASK // 64))
     assert len(casts) == n_chunks
@@ -279,6 +280,8 @@ def test_options_are_checked():
         auto.AutoOptions(target_error=0.0)
     with pytest.raises(ValueError, match="methods"):
         auto.AutoOptions(methods=("radiosity",))
+    with pytest.raises(ValueError, match="radiosity_outer"):
+        auto.AutoOptions(radiosity_outer=0)
 
 
 def test_uncertainty_is_the_spread_of_measured_against_predicted_ratios():
