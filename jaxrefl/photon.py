@@ -680,7 +680,8 @@ class PhotonReplay:
     @classmethod
     def build(cls, caster, vertices, faces, normals, light_pos, intensity, cam_pos, proposal,
               n_photons: int = 1_000_000, target_photons: float = 256.0, max_rings: int = 5, seed: int = 0,
-              max_depth: int = 64, min_survival: float = 0.1, dtype=np.float32) -> "PhotonReplay":
+              max_depth: int = 64, min_survival: float = 0.1, first_bounce: bool = True,
+              dtype=np.float32) -> "PhotonReplay":
         """Trace photons from every light and precompute the gathers.
 
         **Arguments:** `caster` a `RayCaster` of (`vertices` `(N, 3)`, `faces`
@@ -691,10 +692,13 @@ class PhotonReplay:
         reflectance the paths are sampled from; `n_photons` emitted per light;
         `target_photons` effective photon count each gather aims for (sets the
         smoothing level); `max_rings` largest smoothing level; `seed`;
-        `max_depth`, `min_survival` as `trace_photons`; `dtype` of the replay.
+        `max_depth`, `min_survival` as `trace_photons`; `first_bounce=False`
+        gathers only photons that reflected twice or more (the first bounce
+        then comes from `jaxrefl.final_gather`); `dtype` of the replay.
         """
         settings = dict(n_photons=n_photons, target_photons=target_photons, max_rings=max_rings,
-                        seed=seed, max_depth=max_depth, min_survival=min_survival, dtype=dtype)
+                        seed=seed, max_depth=max_depth, min_survival=min_survival, first_bounce=first_bounce,
+                        dtype=dtype)
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
@@ -720,14 +724,15 @@ class PhotonReplay:
                               max_depth=max_depth, min_survival=min_survival)
         t1 = time.perf_counter()
         replay = cls.from_paths(paths, v, f, nrm, cam, target_photons=target_photons, max_rings=max_rings,
-                                max_depth=max_depth, dtype=dtype)
+                                max_depth=max_depth, first_bounce=first_bounce, dtype=dtype)
         replay.settings.update(settings, caster=caster, light_pos=light_pos, intensity=intensity)
         replay.seconds["trace"] = t1 - t0
         return replay
 
     @classmethod
     def from_paths(cls, paths: PhotonPaths, vertices, faces, normals, cam_pos, target_photons: float = 256.0,
-                   max_rings: int = 5, max_depth: int = 64, dtype=np.float32) -> "PhotonReplay":
+                   max_rings: int = 5, max_depth: int = 64, first_bounce: bool = True,
+                   dtype=np.float32) -> "PhotonReplay":
         """Gathers for already traced `paths` (arguments as `build`; `cam_pos`
         `(N, M, 3)` or broadcastable): other gather settings without re-tracing."""
         v = np.asarray(vertices, dtype=np.float64)
@@ -742,6 +747,8 @@ class PhotonReplay:
         t1 = time.perf_counter()
         kernel = gather.mesh_kernel(v, f, max_rings)
         splat = gather.splat_geometry(v, f, nrm, cam, paths.face, paths.bary, paths.direction, paths.light)
+        if not first_bounce:  # the photons stay (parents of deeper ones) but gather no light
+            splat = gather.Splat(*(x[paths.bounce[splat.photon] > 1] for x in splat))
         level = gather.choose_levels(kernel, splat, paths.power.mean(axis=1), m, target_photons)
         inv_area = 1.0 / np.maximum(np.take_along_axis(kernel.area.T, level, axis=1), 1e-300)
         to_cam = cam - v[:, None, :]
@@ -760,8 +767,8 @@ class PhotonReplay:
             facing=jnp.asarray(facing),
         )
         static = _Static(offsets, len(v), m, int(max_depth), int(max_rings) + 1)
-        settings = dict(target_photons=target_photons, max_rings=max_rings, max_depth=max_depth, dtype=dtype,
-                        vertices=v, faces=f, normals=nrm, cam_pos=cam)
+        settings = dict(target_photons=target_photons, max_rings=max_rings, max_depth=max_depth,
+                        first_bounce=first_bounce, dtype=dtype, vertices=v, faces=f, normals=nrm, cam_pos=cam)
         seconds = {"gather_setup": time.perf_counter() - t1}
         return cls(paths, data, static, jnp.asarray(new_index, jnp.int32), settings, seconds)
 
