@@ -141,6 +141,12 @@ def _add_estimate_options(p):
     g.add_argument("--damping", type=float, default=0.5, help="share of each iteration's change taken")
     g.add_argument("--retrace-ess", type=float, default=0.3,
                    help="re-trace the photons when the effective sample size falls below this fraction")
+    g.add_argument("--gather-rays", type=int, default=256,
+                   help="final-gather rays per observation for the first interreflection bounce (0: the photon "
+                        "map gathers every bounce); halved until --gather-budget rays in all")
+    g.add_argument("--gather-budget", type=int, default=8_000_000, help="most final-gather rays in all")
+    g.add_argument("--min-fit-p", type=float, default=0.05,
+                   help="a lobe counts as measured only if its fit passes a chi^2 test at this p-value")
     g = p.add_argument_group("auto (model only what the scene needs)")
     g.add_argument("--target-error", type=float, default=0.05,
                    help="relative pd and ps error to reach (median per region); Method III is a candidate "
@@ -313,7 +319,8 @@ def estimate_to_file(scan_path, out, args) -> dict:
     load_seconds = time.perf_counter() - t0
     photon = {"photons": args.photons, "iterations": args.iterations, "solver": args.photon_solver,
               "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
-              "min_snr": args.min_snr, "window": args.window}
+              "min_snr": args.min_snr, "window": args.window, "gather_rays": args.gather_rays,
+              "gather_budget": args.gather_budget, "min_fit_p": args.min_fit_p}
     if args.method == "radiosity":
         from .radiosity import RadiosityOptions, estimate_radiosity
 
