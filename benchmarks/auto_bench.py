@@ -404,8 +404,8 @@ def report(rows, args, model, seconds, calibration=None) -> str:
              f"camera tilted {args.tilt:g} deg about x; seed {args.seed}; Ward model unless marked TS. Method III: {args.photons:,} photons per light, "
              f"{args.iterations} iterations, on {', '.join(args.photon_objects)} (not on TS scenes: it fits Ward).",
              f"- auto: target errors {', '.join(f'{t:g}' for t in args.targets)} (relative, median per region; "
-             "rows `auto T`), tolerance 10 %, regions of >= 8 points "
-             "dilated by 2 rings. Times: median of "
+             "rows `auto T`), tolerance 10 % times the model's uncertainty, regions of >= 8 points "
+             "dilated by 2 rings, ps from Method I unless the global method's is predicted better. Times: median of "
              f"{args.repeats} warm runs (first run with compilation in brackets), form factors cast in every run.",
              "- Errors: medians over all points of the relative pd error (mean over RGB) / relative ps error "
              "(points whose true ps > 0).", ""]
@@ -484,11 +484,14 @@ def report(rows, args, model, seconds, calibration=None) -> str:
                   f"--dump FILE` on {calibration['scenes']} (weighted squared log ratio of predicted to measured "
                   "bin medians; a scene whose Method I run returned no albedo is left out):", ""]
         lines += [f"- {line}" for line in calibration["log"]]
-    lines += ["", f"Method III: bias = (a + photon_mc k) g with photon_mc pd {model.photon_mc_pd}, ps "
+    lines += ["", f"Method III: bias = (a + photon_mc k) g + b s with photon_mc pd {model.photon_mc_pd}, ps "
               f"{model.photon_mc_ps} (k = sqrt(points / photons per light configuration)), floor photon_noise "
               f"{model.photon_noise} and spread k (pd {model.photon_spread_pd}, ps {model.photon_spread_ps}) in "
               f"quadrature. Method II's own noise pd {model.radiosity_noise_pd}, ps {model.radiosity_noise_ps}. Noise scale pd {model.noise_scale_pd}, ps {model.noise_scale_ps}; unknown_pd "
-              f"{model.unknown_pd}, unknown_ps {model.unknown_ps}.", ""]
+              f"{model.unknown_pd}, unknown_ps {model.unknown_ps}. Uncertainty of the predicted ratio of two methods' "
+              f"errors (log scale; local/radiosity, local/photon, radiosity/photon): pd {model.uncertainty_pd}, ps "
+              f"{model.uncertainty_ps}: a method is preferred only where predicted better by more than "
+              "1.1 exp(uncertainty).", ""]
     return "\n".join(lines)
 
 
