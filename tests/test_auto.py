@@ -138,7 +138,9 @@ def test_a_region_keeps_its_own_method_where_the_more_capable_one_is_predicted_w
     m = _fake_measures(len(v), np.where(diffuse, 0.3, np.where(lobes, 0.05, 0.0)))
     m.gain_specular = np.where(lobes, 0.05, 0.0)
     scan = SimpleNamespace(faces=f, n_points=len(v))
-    p = auto.plan(scan, m, auto.AutoOptions(target_error=0.01, rings=0))
+    # Method III's error grows with the diffuse gain, Method II's with the specular one
+    model = auto.ErrorModel(pd=((0.8, 2.8), (0.0, 2.8), (0.3, 1.0)), uncertainty_pd=(0.0, 0.0, 0.0))
+    p = auto.plan(scan, m, auto.AutoOptions(target_error=0.01, rings=0, model=model))
     assert p.runs == ("radiosity", "photon") and p.run == "photon"
     assert np.all(p.method[diffuse] == 1) and np.all(p.method[lobes] == 2)
     assert np.all(p.method[~(diffuse | lobes)] == 0)
