@@ -24,9 +24,8 @@ import numpy as np
 from benchmarks.inverse_photon_bench import _errors, _scan
 from data_synth.objects import fold_coordinate, make_object
 from jaxrefl import inverse_photon as ip
-from jaxrefl.classify import T_DIFF
 from jaxrefl.final_gather import gather_rays
-from jaxrefl.local import _noise_weights, prepare_rows, quantisation_step
+from jaxrefl.local import prepare_rows
 from jaxrefl.photon import PhotonReplay
 from jaxrefl.raycast import RayCaster
 
@@ -34,12 +33,8 @@ from jaxrefl.raycast import RayCaster
 def oracle(scan, near, far, settings):
     caster = RayCaster(scan.vertices, scan.faces)
     r = prepare_rows(scan, ip.PhotonOptions().thresholds, caster)
-    use, classes = r["use"], r["classes"]
-    has_diff = (use & (classes == T_DIFF)).any(1)
-    w = np.asarray(_noise_weights(jnp.asarray(r["y"]), jnp.asarray(use),
-                                  quantisation_step(scan.radiance, use) / np.sqrt(12.0)))
-    rows = {k: jnp.asarray(r[k]) for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
-    rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(np.where(has_diff[:, None], use & (classes == T_DIFF), use)))
+    use = r["use"]
+    rows, _ = ip._fit_rows(scan, r)
     truth = (scan.true_pd, scan.true_ps, scan.true_alpha)
     ok = use.any(1)
     for rays, photons in settings:

@@ -44,12 +44,12 @@ import numpy as np
 from scipy.stats import qmc
 
 from . import brdf
+from .gather import _EXP_CAP
 from .photon import _interp, _vdot, _vhalf_angle, _vnormalize, lobe_share, sample_mixture
 from .raycast import RayCaster
 
 __all__ = ["GatherRays", "gather_rays", "gather_parts"]
 
-_EXP_CAP = 80.0
 #: Rays per batch of the host loop (bounds the memory of one Embree call).
 _BATCH = 1_000_000
 
@@ -100,14 +100,14 @@ def _sample(u, n, to_cam, alpha, share):
 @jax.jit
 def _at_hit(vidx, bary, pos, w, light, normals):
     """Shading geometry at the landing points `y` (`(3, C)` arrays): returns
-    `(front, cos_i, cos_o, theta_h, dist2)` toward the light and toward `x`."""
+    `(cos_i, cos_o, theta_h, dist2)` toward the light and toward `x`."""
     n = _vnormalize(tuple(_interp(vidx, bary, normals[c]) for c in range(3)))
     to_x = tuple(-a for a in w)
     d = tuple(light[c] - pos[c] for c in range(3))
     dist2 = _vdot(d, d)
     wi = _vnormalize(d)
     ci, co = _vdot(n, wi), _vdot(n, to_x)
-    return co > 0, ci, co, _vhalf_angle(n, wi, to_x), dist2
+    return ci, co, _vhalf_angle(n, wi, to_x), dist2
 
 
 def gather_rays(caster: RayCaster, normals, cam_pos, light_pos, intensity, proposal, observed, rays: int,
@@ -161,10 +161,10 @@ def gather_rays(caster: RayCaster, normals, cam_pos, light_pos, intensity, propo
         bary, pos = hits.barycentric[hits.hit], hits.points[hits.hit]
         vidx = caster.faces[hits_face]
         lit = light_pos[x[go], j[go]]
-        front, ci, co, th, dist2 = (np.asarray(a, np.float64) for a in _at_hit(
+        ci, co, th, dist2 = (np.asarray(a, np.float64) for a in _at_hit(
             jnp.asarray(vidx.T, jnp.int32), jnp.asarray(bary.T, dtype), jnp.asarray(pos.T, dtype),
             jnp.asarray(w[go].T, dtype), jnp.asarray(lit.T, dtype), normals_t))
-        keep = np.flatnonzero((front > 0) & (ci > 0))
+        keep = np.flatnonzero((co > 0) & (ci > 0))  # y faces x (one-sided) and its light
         blocked = caster.segments_blocked(pos[keep], caster.face_normals[hits_face[keep]], lit[keep])
         keep = keep[~blocked]
         g = go[keep]

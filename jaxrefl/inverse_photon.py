@@ -413,6 +413,26 @@ def _start(est: Estimate):
     return pd, ps, np.clip(alpha, *ALPHA_RANGE)
 
 
+def _fit_rows(scan, rows_np):
+    """Device arrays of the observations for the fits, and the quantisation step: those of
+    `prepare_rows` plus `w2` noise weights squared, `a` step (a)'s samples (`T_diff`,
+    all where a point has none), `b` step (b)'s (`T_spec`, `T_none`), `lobe` lobe
+    evidence (a `T_spec` sample and two step (b) samples: only these points move their
+    lobe; the others keep the start's until the final fill), `joint` (no `T_diff`
+    sample), `n_b`."""
+    use, classes = rows_np["use"], rows_np["classes"]
+    has_diff = (use & (classes == T_DIFF)).any(1)
+    b_mask = use & (classes != T_DIFF)
+    q_step = quantisation_step(scan.radiance, use)
+    w = np.asarray(_noise_weights(jnp.asarray(rows_np["y"]), jnp.asarray(use), q_step / np.sqrt(12.0)))
+    rows = {k: jnp.asarray(rows_np[k]) for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
+    lobe = ((use & (classes == T_SPEC)).sum(1) >= 1) & (b_mask.sum(1) >= 2)
+    rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(np.where(has_diff[:, None], use & (classes == T_DIFF), use)),
+                b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe), joint=jnp.asarray(~has_diff),
+                n_b=jnp.asarray(b_mask.sum(1)))
+    return rows, q_step
+
+
 def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayCaster | None = None,
                     progress=None) -> Estimate:
     """Method III on a scan with radiance (see the module docstring).
@@ -436,20 +456,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     timings["local_start"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    use, classes = rows_np["use"], rows_np["classes"]
-    has_diff = (use & (classes == T_DIFF)).any(1)
-    a_mask = np.where(has_diff[:, None], use & (classes == T_DIFF), use)
-    b_mask = use & (classes != T_DIFF)
-    n_spec = (use & (classes == T_SPEC)).sum(1)
-    q_step = quantisation_step(scan.radiance, use)
-    w = np.asarray(_noise_weights(jnp.asarray(rows_np["y"]), jnp.asarray(use), q_step / np.sqrt(12.0)))
-    rows = {k: jnp.asarray(rows_np[k]) for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
-    # Only points with lobe evidence (a T_spec sample and two step (b) samples) move their
-    # lobe; the others keep the start's (interpolated) one until the final fill.
-    lobe = (n_spec >= 1) & (b_mask.sum(1) >= 2)
-    rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(a_mask), b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe),
-                joint=jnp.asarray(~has_diff),
-                n_b=jnp.asarray(b_mask.sum(1)))
+    rows, q_step = _fit_rows(scan, rows_np)
+    use = rows_np["use"]
+    joint, b_mask, lobe = (np.asarray(rows[k]) for k in ("joint", "b", "lobe"))
     lobe_rows = jnp.asarray(np.flatnonzero(lobe), jnp.int32)
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
     reach = _window_reach(adjacency, options.window)
@@ -560,7 +569,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "gather_rays_per_observation": n_rays, "gather_entries": 0 if fg is None else int(fg.row.shape[0]),
         "quantisation_step": q_step,
         "points_with_observations": int(observed_any.sum()),
-        "points_with_diffuse_only_sample": int(has_diff.sum()),
+        "points_with_diffuse_only_sample": int((~joint).sum()),
         "start": {"coverage": float(np.mean(init.status == MEASURED))},
     }
     return Estimate(pd, ps, alpha, status, std_pd, std_ps, std_alpha, identifiable, observed_any, "ward", meta)
