@@ -45,7 +45,7 @@ from scipy.stats import qmc
 
 from . import brdf
 from .gather import _EXP_CAP
-from .photon import _interp, _vdot, _vhalf_angle, _vnormalize, lobe_share, sample_mixture
+from .photon import _chunked, _interp, _vdot, _vhalf_angle, _vnormalize, lobe_share, sample_mixture
 from .raycast import RayCaster
 
 __all__ = ["GatherRays", "gather_rays", "gather_parts"]
@@ -83,7 +83,7 @@ class GatherRays(NamedTuple):
 @jax.jit
 def _sample(u, n, to_cam, alpha, share):
     """Gather directions at `x` for `C` rays (component-major `(3, C)` vectors):
-    returns `(w, pdf, cos_x, lobe_w, tan2)`."""
+    returns `(w_x, w_y, w_z, pdf, cos_x, lobe_w, tan2)`."""
     n, c = _vnormalize(tuple(n)), _vnormalize(tuple(to_cam))
     w, pdf = sample_mixture(u, n, c, alpha, share)
     ci, co = _vdot(n, w), _vdot(n, c)
@@ -94,7 +94,7 @@ def _sample(u, n, to_cam, alpha, share):
     tan2 = jnp.where(valid, jnp.tan(jnp.minimum(th, 1.5)) ** 2, 1e30)
     lobe_w = jnp.where(valid, 1.0 / (4.0 * jnp.pi * jnp.sqrt(jnp.maximum(ci, brdf.COS_FLOOR)
                                                             * jnp.maximum(co, brdf.COS_FLOOR))), 0.0)
-    return w, pdf, ci, lobe_w, tan2
+    return (*w, pdf, ci, lobe_w, tan2)
 
 
 @jax.jit
@@ -151,9 +151,10 @@ def gather_rays(caster: RayCaster, normals, cam_pos, light_pos, intensity, propo
         pts = np.where(lobe[:, None], sobol[0][kk], sobol[1][np.where(lobe, 0, kk - n_lobe)])
         u = np.c_[(pts + np.repeat(rng.random((len(o) // rays, 2)), rays, axis=0)) % 1.0,
                   np.where(lobe, 0.0, 1.0)]
-        w, pdf, cos_x, lobe_w, tan2 = (np.asarray(a, np.float64) for a in _sample(
-            jnp.asarray(u.T, dtype), jnp.asarray(nrm[x].T, dtype), jnp.asarray((cam_pos[x, j] - v[x]).T, dtype),
-            jnp.asarray(alpha[x], dtype), jnp.asarray(share[x], dtype)))
+        # Fixed-size chunks (photon._chunked): one compilation, whatever the batch sizes.
+        *w, pdf, cos_x, lobe_w, tan2 = (a.astype(np.float64) for a in _chunked(
+            _sample, len(o), tuple(a.astype(dtype) for a in (u.T, nrm[x].T, (cam_pos[x, j] - v[x]).T, alpha[x],
+                                                               share[x]))))
         w = np.stack(w).T
         go = np.flatnonzero((cos_x > 0) & (pdf > 0))
         hits = caster.first_hit(caster.offset_origins(v[x[go]], caster.offset_normals[x[go]], w[go]), w[go])
@@ -161,9 +162,9 @@ def gather_rays(caster: RayCaster, normals, cam_pos, light_pos, intensity, propo
         bary, pos = hits.barycentric[hits.hit], hits.points[hits.hit]
         vidx = caster.faces[hits_face]
         lit = light_pos[x[go], j[go]]
-        ci, co, th, dist2 = (np.asarray(a, np.float64) for a in _at_hit(
-            jnp.asarray(vidx.T, jnp.int32), jnp.asarray(bary.T, dtype), jnp.asarray(pos.T, dtype),
-            jnp.asarray(w[go].T, dtype), jnp.asarray(lit.T, dtype), normals_t))
+        ci, co, th, dist2 = (a.astype(np.float64) for a in _chunked(
+            _at_hit, len(go), (vidx.T.astype(np.int32),) + tuple(a.T.astype(dtype) for a in (bary, pos, w[go], lit)),
+            (normals_t,)))
         keep = np.flatnonzero((co > 0) & (ci > 0))  # y faces x (one-sided) and its light
         blocked = caster.segments_blocked(pos[keep], caster.face_normals[hits_face[keep]], lit[keep])
         keep = keep[~blocked]
