@@ -12,7 +12,7 @@ Units are metres, +y is up; A–D stand on y = 0 around the y axis.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -24,7 +24,9 @@ OBJECT_NAMES = ("A", "B", "C", "D", "E")  # analogues of the paper's objects
 #: Beyond the paper: V, a convex glazed vase (no interreflection, no cast shadow) for
 #: checking local estimation where the local model is exact.
 EXTRA_NAMES = ("V",)
-SETUPS = ("diffuse", "glossy")
+SETUPS = ("diffuse", "glossy", "glazed")
+#: The "glazed" set-up: one uniform Ward lobe over every object (the glossy paper of E).
+GLAZE_PS, GLAZE_ALPHA = 0.3, 0.08
 
 _SQRT_HALF = float(np.sqrt(0.5))
 _PD_RANGE = (0.02, 0.9)
@@ -73,7 +75,16 @@ def make_object(name: str, resolution: int = 64, setup: str = "glossy") -> Synth
     """Build synthetic object `name` ('A'..'E').
 
     resolution: voxels along the object's largest extent (A–D); for E each plate is a
-    (resolution//2 + 1)^2 vertex grid. setup: 'diffuse' or 'glossy', used by E only.
+    (resolution//2 + 1)^2 vertex grid. setup: 'diffuse' or 'glossy' (the default) choose
+    E's paper and leave A–D and V as they are; 'glazed' (every object) keeps the
+    object's own diffuse albedo pd (E: its glossy paper's 0.7) and replaces its specular
+    part by one uniform glaze lobe, ps = 0.3 and roughness 0.08 rad everywhere (used as
+    the Ward alpha; the lobe of glossy E, `GLAZE_PS`, `GLAZE_ALPHA`). The paper's
+    objects were glazed pottery whose concavities evidently carried strong specular
+    interreflection; the default A–D carry little (their lobes are weak or broad away
+    from the small glossy parts). pd is not reduced under the glaze, so pd + ps
+    reaches 1.2 on the brightest parts (A's belly): more than a real glaze would
+    pass, harmless for these open shapes (no photon or path is kept by it forever).
     """
     if name not in OBJECT_NAMES + EXTRA_NAMES:
         raise ValueError(f"name must be one of {OBJECT_NAMES + EXTRA_NAMES}, got {name!r}")
@@ -84,13 +95,14 @@ def make_object(name: str, resolution: int = 64, setup: str = "glossy") -> Synth
     if resolution < 16:
         raise ValueError(f"resolution must be >= 16, got {resolution}")
     if name == "E":
-        return _make_plates(int(resolution), setup)
+        return _glazed(_make_plates(int(resolution), "glossy")) if setup == "glazed" else \
+            _make_plates(int(resolution), setup)
     prims, reflect, part_names, description = _SPECS[name]()
     v, f, n, prim_idx = _mesh_sdf(prims, int(resolution))
     part_of_prim = np.array([part_names.index(p.part) for p in prims], dtype=np.int16)
     part = part_of_prim[prim_idx]
     pd, ps, rough = reflect(v, part, part_names)
-    return SynthObject(
+    obj = SynthObject(
         name=name,
         vertices=v,
         faces=f,
@@ -102,6 +114,15 @@ def make_object(name: str, resolution: int = 64, setup: str = "glossy") -> Synth
         part_names=part_names,
         description=description,
     )
+    return _glazed(obj) if setup == "glazed" else obj
+
+
+def _glazed(obj: SynthObject) -> SynthObject:
+    """`obj` under a uniform glaze: pd kept, ps `GLAZE_PS`, roughness `GLAZE_ALPHA` everywhere."""
+    n = len(obj.vertices)
+    return replace(obj, ps=np.full(n, GLAZE_PS), roughness=np.full(n, GLAZE_ALPHA),
+                   description=f"{obj.description} Glazed: a uniform lobe (ps {GLAZE_PS}, roughness "
+                               f"{GLAZE_ALPHA} rad) over its own diffuse colours.")
 
 
 def fold_coordinate(vertices: np.ndarray) -> np.ndarray:

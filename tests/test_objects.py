@@ -153,6 +153,22 @@ def test_e_setups(objects):
     assert len(make_object("E", resolution=16).vertices) == 2 * 9 * 9
 
 
+@pytest.mark.parametrize("name", ["A", "B", "C", "D", "E", "V"])
+def test_glazed_setup_keeps_pd_and_puts_one_uniform_lobe_over_it(name):
+    """'glazed': the object's own mesh and diffuse albedo (E: its glossy paper's), one
+    Ward lobe ps 0.3, roughness 0.08 rad everywhere; the default is unchanged."""
+    base = make_object(name, resolution=20)
+    glazed = make_object(name, resolution=20, setup="glazed")
+    np.testing.assert_array_equal(glazed.vertices, base.vertices)
+    np.testing.assert_array_equal(glazed.faces, base.faces)
+    np.testing.assert_array_equal(glazed.pd, base.pd)
+    assert np.all(glazed.ps == 0.3) and np.all(glazed.roughness == 0.08)
+    assert "Glazed" in glazed.description
+    if name in SOLIDS:  # the default A-D lobes vary over the object; the glaze does not
+        assert np.ptp(base.ps) > 0 or base.ps[0] != 0.3
+        np.testing.assert_array_equal(make_object(name, resolution=20, setup="glossy").ps, base.ps)
+
+
 @pytest.mark.parametrize(
     "kwargs, word",
     [
