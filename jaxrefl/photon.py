@@ -823,18 +823,64 @@ class PhotonReplay:
         return PhotonReplay.build(caster, *args, (pd, ps, alpha), **s)
 
 
+#: Largest number of final-gather rays `relight_indirect` traces at once (vertices are gathered
+#: in blocks that fit; the ray geometry of one block is dropped before the next).
+_RELIGHT_GATHER_RAYS = 4_000_000
+
+
 def relight_indirect(vertices, faces, normals, pd, ps, alpha, light_pos, intensity, cam_pos,
-                     n_photons: int = 1_000_000, target_photons: float = 256.0, seed: int = 0, caster=None):
+                     n_photons: int = 1_000_000, target_photons: float = 256.0, seed: int = 0, caster=None,
+                     gather_rays: int = 256):
     """Interreflected radiance `(N, 3)` [W/(sr m^2)] of every vertex toward
     `cam_pos` (`(3,)` or `(N, 3)`) under one point light at `light_pos` `(3,)`
     of radiant intensity `intensity` [W/sr], for Ward reflectance `pd` `(N, 3)`,
-    `ps` `(N,)`, `alpha` `(N,)` [rad] (photons traced from that reflectance)."""
+    `ps` `(N,)`, `alpha` `(N,)` [rad] (photons traced from that reflectance).
+
+    As Method III models it: the first bounce (light -> surface -> vertex) is
+    gathered from every vertex that faces its camera by `gather_rays` rays drawn
+    from that reflectance (`jaxrefl.final_gather`; a photon map blurs the mirror
+    image of nearby surfaces over its kernel), the later bounces come from the
+    photon map (`first_bounce=False`). `gather_rays=0`: the photon map carries
+    every bounce (cheaper, blurred beside creases of glossy surfaces)."""
+    if gather_rays < 0:
+        raise ValueError(f"gather_rays must be >= 0, got {gather_rays}")
     v = np.asarray(vertices, dtype=np.float64)
     cam = np.asarray(cam_pos, dtype=np.float64)
     if cam.shape == (len(v), 3):
         cam = cam[:, None, :]
     light = np.asarray(light_pos, dtype=np.float64).reshape(1, 3)
+    y = np.asarray(intensity, dtype=np.float64).reshape(1)
     params = tuple(np.asarray(x, dtype=np.float64) for x in (pd, ps, alpha))
-    replay = PhotonReplay.build(caster, v, faces, normals, light, np.asarray(intensity, dtype=np.float64).reshape(1),
-                                cam, params, n_photons=n_photons, target_photons=target_photons, seed=seed)
-    return np.asarray(replay.indirect(*params), dtype=np.float64)[:, 0, :]
+    caster = caster if caster is not None else RayCaster(v, np.asarray(faces, dtype=np.int64))
+    replay = PhotonReplay.build(caster, v, faces, normals, light, y, cam, params, n_photons=n_photons,
+                                target_photons=target_photons, seed=seed, first_bounce=gather_rays == 0)
+    out = np.asarray(replay.indirect(*params), dtype=np.float64)[:, 0, :]
+    if gather_rays:
+        out = out + _relight_first_bounce(caster, replay, params, light, y, gather_rays, seed)
+    return out
+
+
+def _relight_first_bounce(caster, replay, params, light, intensity, rays, seed):
+    """First-bounce radiance `(N, 3)` toward each vertex's camera (`relight_indirect`),
+    gathered in blocks of vertices of at most `_RELIGHT_GATHER_RAYS` rays."""
+    from .final_gather import gather_parts, gather_rays  # final_gather imports this module
+
+    s = replay.settings
+    n = len(s["vertices"])
+    cam = np.broadcast_to(s["cam_pos"], (n, 1, 3))
+    lights = np.broadcast_to(light.reshape(1, 1, 3), (n, 1, 3))
+    pd, ps, alpha = params
+    # The proposal's lobe needs a roughness > 0 (where ps = 0 it is not sampled anyway).
+    proposal = (np.clip(pd, 0.0, None), np.clip(ps, 0.0, None), np.clip(np.where(alpha > 0, alpha, 0.1), 0.005, 1.0))
+    facing = np.asarray(replay.data.facing)[:, 0]
+    todo = np.flatnonzero(facing)
+    out = np.zeros((n, 3))
+    per_block = max(1, _RELIGHT_GATHER_RAYS // rays)
+    for b, start in enumerate(range(0, len(todo), per_block)):
+        observed = np.zeros((n, 1), bool)
+        observed[todo[start:start + per_block], 0] = True
+        g = gather_rays(caster, s["normals"], cam, lights, intensity, proposal, observed, rays,
+                        seed=int(np.random.SeedSequence([seed, b]).generate_state(1)[0]))
+        d, q = (np.asarray(x, np.float64)[:, 0] for x in gather_parts(g, pd, ps, alpha, n, 1))
+        out += pd / np.pi * d + ps[:, None] * q
+    return out

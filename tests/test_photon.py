@@ -296,14 +296,48 @@ def test_relight_indirect(plates):
     obj, caster, params = plates
     n = len(obj.vertices)
     out = relight_indirect(vertices=obj.vertices, faces=obj.faces, normals=obj.normals, pd=obj.pd, ps=obj.ps,
-                           alpha=obj.roughness, light_pos=LIGHT, intensity=1.5, cam_pos=CAM, n_photons=50_000)
+                           alpha=obj.roughness, light_pos=LIGHT, intensity=1.5, cam_pos=CAM, n_photons=50_000,
+                           gather_rays=0)
     assert out.shape == (n, 3) and out.dtype == np.float64 and np.all(np.isfinite(out))
     rep = PhotonReplay.build(caster, obj.vertices, obj.faces, obj.normals, LIGHT[None], 1.5, CAM, params,
                              n_photons=50_000)
     np.testing.assert_allclose(out, np.asarray(rep.indirect(*params))[:, 0], rtol=1e-6)
     per_vertex = relight_indirect(obj.vertices, obj.faces, obj.normals, *params, LIGHT, 1.5,
-                                  np.broadcast_to(CAM, (n, 3)), n_photons=50_000)
+                                  np.broadcast_to(CAM, (n, 3)), n_photons=50_000, gather_rays=0)
     np.testing.assert_allclose(per_vertex, out, rtol=1e-6)
+    with pytest.raises(ValueError, match="gather_rays"):
+        relight_indirect(obj.vertices, obj.faces, obj.normals, *params, LIGHT, 1.5, CAM, gather_rays=-1)
+
+
+def test_relight_indirect_gathers_the_first_bounce_as_method_iii(plates):
+    """By default the first bounce is gathered from each vertex (as Method III models
+    it) and the photon map carries the later ones. Beside E's fold (glossy, 6 mm-5 cm)
+    the sum matches the brute-force path tracer to 12 % mean absolute deviation per
+    vertex (measured 6.2 %, 4096 paths with 1.8 % standard error each) and without bias
+    (+-4 %), where the photon map of every bounce blurs the other plate's mirror image
+    (measured 23 % off, +15 % on average): less than half its deviation."""
+    obj, caster, params = plates
+    fold = np.abs(fold_coordinate(obj.vertices))
+    region = np.flatnonzero((fold > 0.006) & (fold < 0.05))
+    tracer = PathTracer(obj.vertices, obj.faces, obj.normals, Material(*params, "ward"), caster=caster)
+    cam = np.broadcast_to(CAM, (len(region), 1, 3)).copy()
+    light = np.broadcast_to(LIGHT, (len(region), 1, 3)).copy()
+    total, se = tracer.render(cam, light, np.ones(1), samples=4096, seed=3, points=region, progress=False)
+    direct, _ = tracer.render(cam, light, np.ones(1), samples=0, points=region, progress=False)
+    ref, ref_se = (total - direct)[:, 0].sum(1), np.sqrt((se[:, 0] ** 2).sum(1))
+    assert np.median(ref_se / ref) < 0.025
+
+    def deviation(**kw):
+        out = relight_indirect(obj.vertices, obj.faces, obj.normals, *params, LIGHT, 1.0, CAM, n_photons=200_000,
+                               seed=0, caster=caster, **kw)
+        assert out.shape == (len(obj.vertices), 3) and np.all(np.isfinite(out))
+        return out[region].sum(1) / ref - 1
+
+    gathered, photons_only = deviation(), deviation(gather_rays=0)
+    assert np.mean(np.abs(gathered)) < 0.12, np.mean(np.abs(gathered))
+    assert abs(np.mean(gathered)) < 0.04, np.mean(gathered)
+    assert np.mean(np.abs(gathered)) < 0.5 * np.mean(np.abs(photons_only)), (np.mean(np.abs(gathered)),
+                                                                              np.mean(np.abs(photons_only)))
 
 
 def test_bad_input_is_named(plates):
