@@ -34,29 +34,40 @@ measured to predicted error ratios over bins of points (`uncertainty_pd`, `_ps`;
 about a factor 1.5 for pd).
 
 **Choice**: methods are ranked by cost (local < radiosity < photon, as measured
-on Objects A-D at the benchmark's settings: `RESULTS_auto.md`). A method is *good
-enough* where its predicted error is at most `max(target, (1 + tolerance) * best)`,
-`best` the lowest predicted error of the other methods each times the model's
-uncertainty on its ratio to this one (`ErrorModel.margin`): a costlier method is
-only worth it where it is predicted better by more than the tolerance and more than
-the model can tell apart (a target below what any method reaches asks only for the
-best reachable). A point *needs a global method* where Method I is not good enough.
+on Objects A-D at the benchmark's settings: `RESULTS_auto.md`). Each predicted error
+has two parts (`predict_parts`): `noise`, which the model takes from Method I's own
+covariance and the methods' noise floors, and `bias`, the interreflected light a
+method leaves in its fit, which is what the model is unsure of. The burden of proof
+is on the cheaper method: `j` is *good enough* where, against every other candidate
+`k`, `sqrt(noise_j^2 + (margin_jk bias_j)^2) <= max(target, (1 + tolerance) e_k)`,
+`margin_jk = exp(uncertainty)` of the pair (`ErrorModel.margin`) and `e_k` `k`'s
+nominal error. Where interreflection is negligible (a convex object, the convex parts
+of any object, light that reaches few other points) the bias is ~0 and Method I's lower
+noise keeps it; where it is not, the method that removes it runs. `target` is an error
+the user accepts (`--target-error`): a method within it is good enough whatever the
+others; 0 (the default) asks for the best method's accuracy within the tolerance. A
+point *needs a global method* where Method I is not good enough.
 Regions are the connected components (mesh edges) of that mask with at least
-`min_region` points, dilated by `rings` rings; per region the cheapest method whose
-predicted median errors are good enough is chosen. The most capable method any
-region needs is run: Method III on the whole object, Method II for the regions'
-points only (the rest of the object enters its radiosity with Method I's albedo;
-its cost is the light configurations the regions' observations use; two
-alternations of pd and specular part, `radiosity_outer`). Its pd is used inside the
-regions and at the points outside them where it is predicted to beat Method I at no
-extra cost (`_extension`); everywhere else Method I's result stands (it is what was
-fitted to measure the scene, and where interreflection is negligible it is at least
-as accurate: `RESULTS_auto.md`). **ps and roughness** come from the same method only
-where its ps is predicted better than Method I's by more than the tolerance and the
-uncertainty (`_own_ps`), else from Method I (its fit is at hand everywhere; with the
-calibrated model neither global method's ps is predicted better, and the seed-0
-scans agree except on Object B), so a region's method is chosen for its pd and what
-the merge will use for ps.
+`min_region` points, dilated by `rings` rings; per region the cheapest method good
+enough on the medians of its points (pessimistic and nominal errors each reduced by
+the median) is chosen (none: the least short of its limits, then the cheapest). The
+most capable method any region needs is run: Method III on the whole object (it has
+no way to fit part of one: the photon map and its fit need every point's
+reflectance), Method II for the regions' points only (the rest of the object enters
+its radiosity with Method I's albedo; its cost is the light configurations the
+regions' observations use; two alternations of pd and specular part,
+`radiosity_outer`). Its pd is used inside the regions and at the points outside them
+where it is predicted (nominally) to beat Method I at no extra cost (`_extension`);
+everywhere else Method I's result stands (it is what was fitted to measure the scene,
+and where interreflection is negligible it is at least as accurate: `RESULTS_auto.md`).
+The choice is made on pd: the ps model cannot rank the methods (its predicted scene
+medians are ~3 % for all of them where the measured ones range from 0.01 % to 9 %).
+**ps and roughness** come from Method III at every point wherever it runs (it refits
+every lobe with the interreflected light removed, and its window fill spreads those
+lobes, not Method I's; seed-0 calibration scans, scene medians against Method I's:
+A 0.83x, C 1.05x, D 0.32x, E glossy 0.03x, V 0.95x, B 1.16x, where Method III is also
+the best in pd), else from Method I (Method II's ps is not better where it runs: on the
+points of D with g > 0.02, 3x worse).
 
 Method III (`jaxrefl.inverse_photon`) is imported only when needed; it fits the
 Ward model, so it is a candidate only with `local.model == 'ward'` and when the
@@ -81,7 +92,7 @@ from .local import Estimate, LocalOptions, estimate_local, prepare_rows
 from .radiosity import RadiosityOptions, estimate_radiosity
 from .raycast import RayCaster
 
-__all__ = ["METHODS", "ErrorModel", "AutoOptions", "Measures", "Plan", "interreflection_ratios", "photon_k", "measure", "predict", "plan", "estimate_auto", "photon_available"]
+__all__ = ["METHODS", "ErrorModel", "AutoOptions", "Measures", "Plan", "interreflection_ratios", "photon_k", "measure", "predict_parts", "predict", "plan", "estimate_auto", "photon_available"]
 
 #: Candidate methods, cheapest first.
 METHODS = ("local", "radiosity", "photon")
@@ -105,8 +116,8 @@ class ErrorModel:
     `uncertainty_pd` (`_ps`): how far the model's predicted ratio of two methods' errors
     is from the measured one, per pair (local/radiosity, local/photon, radiosity/photon):
     the weighted RMS of `log(measured ratio / predicted ratio)` over the calibration's bins
-    of points. A method is preferred to another only where it is predicted better by more
-    than `exp(uncertainty)` (`margin`). Fitted by `benchmarks/auto_bench.py --calibrate`
+    of points. `exp(uncertainty)` (`margin`) inflates a method's bias when it is compared with
+    another (`_pessimistic`). Fitted by `benchmarks/auto_bench.py --calibrate`
     (`RESULTS_auto.md`)."""
 
     # `python3 -m benchmarks.auto_bench --calibrate --repeats 0 --seed 0 --tilt 30`: Objects A-D, V,
@@ -154,8 +165,9 @@ class ErrorModel:
 
 @dataclass(frozen=True)
 class AutoOptions:
-    """Settings of `estimate_auto` (module docstring). `target_error`: relative error
-    of pd and ps to reach (median per region); `tolerance`: a method within this
+    """Settings of `estimate_auto` (module docstring). `target_error`: relative pd error
+    the user accepts (median per region; 0: as accurate as the best method); `tolerance`:
+    a method whose error, its bias inflated by the model's uncertainty, is within this
     fraction of the best predicted error counts as good enough; `min_region` points
     a region needs; `rings` it is dilated by; `methods` the candidates; `local`,
     `radiosity` the options of Methods I and II (the form factors are cast with
@@ -164,9 +176,9 @@ class AutoOptions:
     `model` the error model; `radiosity_outer` Method II's alternations of pd and the specular
     part in the regions, at most `radiosity.outer`: its pd settles after two (seed-0 scans of
     Objects A-D: region medians within 0.07 points of three; `RESULTS_auto.md`), and the third
-    refines a specular fit auto takes from Method I unless Method II's ps is predicted better."""
+    refines a specular fit auto takes from Method I (Method II's ps is not used)."""
 
-    target_error: float = 0.05
+    target_error: float = 0.0
     tolerance: float = 0.1
     min_region: int = 8
     rings: int = 2
@@ -178,8 +190,8 @@ class AutoOptions:
     radiosity_outer: int = 2
 
     def __post_init__(self):
-        if not self.target_error > 0:
-            raise ValueError(f"target_error: must be > 0, got {self.target_error}")
+        if not self.target_error >= 0:
+            raise ValueError(f"target_error: must be >= 0, got {self.target_error}")
         if not self.tolerance >= 0:
             raise ValueError(f"tolerance: must be >= 0, got {self.tolerance}")
         if self.rings < 0 or self.min_region < 1 or self.radiosity_outer < 1:
@@ -319,8 +331,12 @@ def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None
     return Measures(ff.row_sums, g, s, rel_pd, rel_ps, local, ff, seconds, k)
 
 
-def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHODS) -> dict:
-    """Predicted relative errors per point: `{method: {"pd": (N,), "ps": (N,)}}`."""
+def predict_parts(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHODS) -> dict:
+    """Per point the two parts of each method's predicted relative error, `{method: {"pd": (noise,
+    bias), "ps": (noise, bias)}}` each `(N,)`: `noise` what the model is sure of (Method I's
+    scaled relative std, Method II's and III's own noise floors in quadrature), `bias` the
+    interreflected light the method leaves in its fit (and Method III's Monte Carlo error of it),
+    the part the model's uncertainty is about."""
     out = {}
     for k in methods:
         out[k] = {}
@@ -330,8 +346,14 @@ def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHOD
             floor = getattr(model, f"radiosity_noise_{q}") if k == "radiosity" else 0.0
             if k == "photon":  # Monte Carlo noise at every point, interreflection or not
                 floor = np.hypot(model.photon_noise, getattr(model, f"photon_spread_{q}") * measures.photon_k)
-            out[k][q] = np.sqrt(noise**2 + bias**2 + floor**2)
+            out[k][q] = (np.hypot(noise, floor), np.abs(bias))
     return out
+
+
+def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHODS) -> dict:
+    """Predicted relative errors per point: `{method: {"pd": (N,), "ps": (N,)}}`,
+    `sqrt(noise^2 + bias^2)` of `predict_parts`."""
+    return {k: {q: np.hypot(*v[q]) for q in v} for k, v in predict_parts(measures, model, methods).items()}
 
 
 # -- the plan -------------------------------------------------------------------------------
@@ -340,9 +362,8 @@ def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHOD
 @dataclass
 class Plan:
     """`method` `(N,)` index into `METHODS` whose pd is used at each point; `ps_method` `(N,)`
-    the one whose ps and roughness are used (Method I's wherever the point's own method is not
-    predicted better in ps by more than the tolerance and the model's uncertainty:
-    `_own_ps`); `run` the most capable global method run (None: Method I alone); `regions`
+    the one whose ps and roughness are used (Method III's everywhere when it runs, else Method
+    I's); `run` the most capable global method run (None: Method I alone); `regions`
     one dict per region; `needs_global` `(N,)` the mask before regions were formed;
     `predicted` per-method scene medians and those of the plan; `extended` `(N,)` points
     outside the regions that take a global method's result as well (`_extension`); `runs`
@@ -358,34 +379,32 @@ class Plan:
     ps_method: np.ndarray | None = None
 
 
-def _own_ps(errors: dict, method: str, model: ErrorModel, tolerance: float) -> np.ndarray:
-    """`(N,)` where `method`'s own ps is used: it is predicted better than Method I's (which is
-    at hand wherever anything runs) by more than the tolerance and the model's uncertainty."""
-    if method == "local":
-        return np.ones(np.shape(errors["local"]["ps"]), bool)
-    return (errors[method]["ps"] * (1.0 + tolerance) * model.margin("ps", "local", method)
-            < errors["local"]["ps"])
+def _pessimistic(parts: dict, j: str, k: str, q: str, model: ErrorModel) -> np.ndarray:
+    """`(N,)` `j`'s error with its bias inflated by the model's uncertainty on comparing it with
+    `k` (`ErrorModel.margin`): `sqrt(noise_j^2 + (margin_jk bias_j)^2)`; `j`'s nominal error for
+    `j == k`."""
+    noise, bias = parts[j][q]
+    return np.hypot(noise, model.margin(q, j, k) * bias)
 
 
-def _effective(errors: dict, model: ErrorModel, tolerance: float) -> dict:
-    """The errors each method leads to in the merge: its own pd, and its own ps only where
-    `_own_ps` (else Method I's)."""
-    return {k: {"pd": v["pd"], "ps": np.where(_own_ps(errors, k, model, tolerance), v["ps"], errors["local"]["ps"])}
-            for k, v in errors.items()}
-
-
-def _meets(errors: dict, candidates, target: float, tolerance: float, model: ErrorModel, reduce=lambda e: e):
-    """For each candidate `j`: its (reduced) pd and ps errors meet `max(target, (1 + tol) best_j)`,
-    `best_j` the lowest of the others' errors times the model's uncertainty on their ratio to
-    `j`'s (`ErrorModel.margin`): a method is good enough unless another is predicted better by
-    more than the tolerance and what the model cannot tell apart."""
+def _meets(parts: dict, candidates, target: float, tolerance: float, model: ErrorModel, reduce=lambda e: e,
+           quantities=("pd",)) -> dict:
+    """For each candidate `j`, whether it is good enough: for every other candidate `k`, `j`'s
+    (reduced) pessimistic error (`_pessimistic`, against `k`) is at most `max(target, (1 + tol)
+    e_k)`, `e_k` `k`'s (reduced) nominal error. The burden of proof is on the cheaper method:
+    its bias must be small enough that even inflated by what the model cannot tell apart it stays
+    within the tolerance of the best prediction (where interreflection is negligible, bias ~ 0 and
+    Method I's lower noise wins)."""
     ok = {}
-    for q in ("pd", "ps"):
-        vals = {k: np.asarray(reduce(errors[k][q])) for k in candidates}
+    for q in quantities:
+        nominal = {k: np.asarray(reduce(np.hypot(*parts[k][q]))) for k in candidates}
         for j in candidates:
-            best = np.minimum.reduce([vals[k] * model.margin(q, j, k) for k in candidates])
-            limit = np.maximum(target, (1.0 + tolerance) * best)
-            ok[j] = ok.get(j, True) & (vals[j] <= limit)
+            good = ok.get(j, True)
+            for k in candidates:
+                if k != j:
+                    mine = np.asarray(reduce(_pessimistic(parts, j, k, q, model)))
+                    good = good & (mine <= np.maximum(target, (1.0 + tolerance) * nominal[k]))
+            ok[j] = good
     return ok
 
 
@@ -393,17 +412,18 @@ def _median(e):
     return float(np.median(e))
 
 
-def _shortfall(errors: dict, candidates, method: str, core, options) -> tuple:
-    """Ratios of `method`'s median pd and ps errors in `core` to their limits (`_meets`), each
-    floored at 1 (within the limit): compared pd first (the albedo is what every method
-    estimates; ps only where a lobe is seen), then ps, then cost."""
-    out = []
-    for q in ("pd", "ps"):
-        mine = _median(errors[method][q][core])
-        best = min(_median(errors[k][q][core]) * options.model.margin(q, method, k) for k in candidates)
-        limit = max(options.target_error, (1.0 + options.tolerance) * best)
-        out.append(max(1.0, mine / max(limit, 1e-12)))
-    return tuple(out) + (METHODS.index(method),)
+def _shortfall(parts: dict, candidates, method: str, core, options) -> tuple:
+    """Largest ratio over the other candidates of `method`'s median pessimistic pd error in `core`
+    to its limit (`_meets`), floored at 1, then cost: the fallback where no candidate is good
+    enough (each has a bias the others' predictions beat once inflated)."""
+    worst = 1.0
+    for k in candidates:
+        if k == method:
+            continue
+        mine = _median(_pessimistic(parts, method, k, "pd", options.model)[core])
+        limit = max(options.target_error, (1.0 + options.tolerance) * _median(np.hypot(*parts[k]["pd"])[core]))
+        worst = max(worst, mine / max(limit, 1e-12))
+    return (worst, METHODS.index(method))
 
 
 def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), available=None) -> Plan:
@@ -411,9 +431,10 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     candidates (default `options.methods`)."""
     available = [k for k in METHODS if k in (available if available is not None else options.methods)]
     model = options.model
-    errors = _effective(predict(measures, model, available), model, options.tolerance)
+    parts = predict_parts(measures, model, available)
+    errors = {k: {q: np.hypot(*v[q]) for q in v} for k, v in parts.items()}
     n = scan.n_points
-    needs = ~_meets(errors, available, options.target_error, options.tolerance, model)["local"]
+    needs = ~_meets(parts, available, options.target_error, options.tolerance, model)["local"]
     adjacency = vertex_adjacency(scan.faces, n)
 
     def components(mask):
@@ -439,17 +460,19 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     for r in range(labels.max() + 1):
         pts = labels == r
         core = pts & seeds  # the ring is a margin, not evidence: decide on the points that needed it
-        ok = _meets(errors, available, options.target_error, options.tolerance, model,
+        ok = _meets(parts, available, options.target_error, options.tolerance, model,
                     reduce=lambda e, core=core: _median(e[core]))
         choice = next((k for k in available if ok[k]), None)
-        if choice is None:  # none is within the limits in both pd and ps: pd first, then ps
-            choice = min(available, key=lambda k, core=core: _shortfall(errors, available, k, core, options))
+        if choice is None:  # every candidate's inflated bias is beaten: the least short, then the cheapest
+            choice = min(available, key=lambda k, core=core: _shortfall(parts, available, k, core, options))
         wanted.append(choice)
         cores.append(core)
         regions.append({
             "region": r, "points": int(pts.sum()), "seed_points": int((pts & seeds).sum()),
             "needed": choice,
             "predicted": {k: {q: _median(errors[k][q][core]) for q in ("pd", "ps")} for k in available},
+            "pessimistic_pd": {k: max(_median(_pessimistic(parts, k, o, "pd", model)[core]) for o in available)
+                               for k in available},
             "statistics": {name: float(np.median(getattr(measures, name)[core]))
                            for name in ("mass", "gain_diffuse", "gain_specular")},
         })
@@ -471,9 +494,10 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
         more = _extension(scan, errors, k, method, options)
         method[more] = METHODS.index(k)
         extended |= more
-    own = np.stack([_own_ps(errors, k, model, options.tolerance) if k in errors else np.zeros(n, bool)
-                    for k in METHODS])
-    ps_method = np.where(own[method, np.arange(n)], method, 0)
+    # ps and roughness: Method III's at every point where it runs (it refits every lobe with the
+    # interreflected light removed, and the fill spreads those lobes, not Method I's); Method I's
+    # elsewhere (Method II's ps is no better where it runs: module docstring)
+    ps_method = np.full(n, METHODS.index("photon") if "photon" in runs else 0, np.int64)
 
     def plan_errors(q, which):
         return _median(np.choose(which, [errors.get(k, {q: np.zeros(n)})[q] for k in METHODS]))
@@ -499,7 +523,7 @@ def _configs_made(scan, points, options: AutoOptions):
 
 def _extension(scan, errors: dict, run: str, method, options: AutoOptions) -> np.ndarray:
     """`(N,)` points outside the regions that take the global method `run` too: those where it
-    is predicted to beat Method I in pd (their ps stays Method I's unless `_own_ps`) and
+    is predicted to beat Method I in pd (nominal errors: the method's result is at hand) and
     that add nothing to its cost. Method III runs on the whole object anyway; Method II makes
     one light configuration per rack light and head position bin, so with per-point lights
     only points whose configurations the regions use already come for free."""
@@ -606,26 +630,27 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     seconds["total"] = time.perf_counter() - t_start
 
     counts = {k: int(np.sum(p.method == i)) for i, k in enumerate(METHODS) if np.any(p.method == i)}
-    t = options.target_error
+    t, tol = options.target_error, options.tolerance
+    good = (f"within the target {t:g} or, its interreflection bias inflated by the model's uncertainty, within "
+            f"{tol:.0%} of the best method's predicted error")
     if p.run is None:
         choice = "local"
         if not p.needs_global.any():
-            reason = (f"Method I's predicted error meets the target {t:g} (or is within {options.tolerance:.0%} of "
-                      "the best method's) at every point")
+            reason = f"Method I's predicted error is {good} at every point"
         else:
-            reason = (f"Method I misses the target {t:g} at {int(p.needs_global.sum())} point(s), in no region of "
-                      f"{options.min_region} or more points whose median needs a global method")
+            reason = (f"Method I's predicted error is not {good} at {int(p.needs_global.sum())} point(s), in no "
+                      f"region of {options.min_region} or more points whose median needs a global method")
     else:
         choice = "+".join(k for k in METHODS if counts.get(k, 0) > 0)
-        needing = [r for r in p.regions if r["needed"] == p.run]
-        short = [r for r in needing if max(r["predicted"][p.run].values()) > t]
-        reason = (f"{len(p.regions)} region(s), {int(np.count_nonzero(p.method))} of {scan.n_points} points, where Method I's "
-                  f"predicted error misses the target {t:g} and a global method is predicted better by more than "
-                  f"the tolerance and the model's uncertainty; {' / '.join(p.runs)}: the cheapest method predicted "
-                  "to meet it there")
+        reason = (f"{len(p.regions)} region(s), {int(np.count_nonzero(p.method))} of {scan.n_points} points, where "
+                  f"Method I's predicted error is not {good}; {' / '.join(p.runs)}: the cheapest method that is "
+                  "there")
+        short = [r for r in p.regions if r["method"] != "local" and r["needed"] == p.run
+                 and r["pessimistic_pd"][p.run] > max(t, (1.0 + tol) * min(v["pd"] for v in r["predicted"].values()))]
         if short:
-            reason += (f" (in {len(short)} of them no candidate is predicted to meet it: {p.run} is the cheapest "
-                       f"within {options.tolerance:.0%} of the best prediction)")
+            reason += f" (in {len(short)} of them none is: {p.run} is the least short)"
+        if "photon" in p.runs:
+            reason += "; ps and roughness from Method III everywhere"
     notes = []
     for k, why in unavailable.items():
         notes.append(f"{k} not available: {why}")

@@ -148,9 +148,13 @@ def _add_estimate_options(p):
     g.add_argument("--min-fit-p", type=float, default=0.05,
                    help="a lobe counts as measured only if its fit passes a chi^2 test at this p-value")
     g = p.add_argument_group("auto (model only what the scene needs)")
-    g.add_argument("--target-error", type=float, default=0.05,
-                   help="relative pd and ps error to reach (median per region); Method III is a candidate "
-                        "with --model ward")
+    g.add_argument("--target-error", type=float, default=0.0,
+                   help="relative pd error you accept (median per region): a cheaper method that reaches it is "
+                        "kept; 0 (default): as accurate as the best method, within --tolerance. Method III is a "
+                        "candidate with --model ward")
+    g.add_argument("--tolerance", type=float, default=0.1,
+                   help="a cheaper method is kept where its error, its interreflection bias inflated by the "
+                        "error model's uncertainty, is within this fraction of the best method's prediction")
 
 
 def _add_batch(sub):
@@ -336,10 +340,10 @@ def estimate_to_file(scan_path, out, args) -> dict:
         from .auto import AutoOptions, estimate_auto
         from .radiosity import RadiosityOptions
 
-        if not args.target_error > 0:
-            raise ValueError(f"target-error: must be > 0, got {args.target_error}")
+        if not args.target_error >= 0 or not args.tolerance >= 0:
+            raise ValueError(f"target-error, tolerance: must be >= 0, got {args.target_error}, {args.tolerance}")
         est = estimate_auto(scan, AutoOptions(
-            target_error=args.target_error, local=options, photon=photon,
+            target_error=args.target_error, tolerance=args.tolerance, local=options, photon=photon,
             radiosity=RadiosityOptions(rays=args.rays, light_bin=args.light_bin, outer=args.outer, paper=args.paper)))
     else:
         est = estimate_local(scan, options)
