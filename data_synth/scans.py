@@ -137,7 +137,7 @@ def make_scan(
     """Render a synthetic scan bundle of object `name`.
 
     **Arguments:** `resolution` mesh resolution (see `objects.make_object`);
-    `setup` for Object E ('diffuse' or 'glossy'); `rig` 'scanner' (default for
+    `setup` 'diffuse' or 'glossy' (Object E only) or 'glazed' (any object: `objects.make_object`); `rig` 'scanner' (default for
     A-D) or 'pinhole' (default for E); `lights` indices into the 60-position
     rack (default: all); `model` 'torrance-sparrow' or 'ward' (the truth is
     stored as `true_sigma` or `true_alpha` accordingly); `global_illumination`
@@ -218,7 +218,7 @@ def make_scan(
         "jaxrefl_version": jaxrefl.__version__,
         "object": name,
         "description": obj.description,
-        "setup": setup if name == "E" else None,
+        "setup": setup if (name == "E" or setup == "glazed") else None,
         "part_names": list(obj.part_names),
         "rig": rig_desc,
         "light_indices": (lights.tolist() if lights is not None else list(range(m))),

@@ -39,7 +39,8 @@ def _add_synth(sub):
                    help="procedural object (A-E: the paper's analogues; V: a convex glazed vase)")
     p.add_argument("--out", required=True, help="scan bundle to write (.npz)")
     p.add_argument("--resolution", type=int, default=64, help="mesh resolution (voxels across the object)")
-    p.add_argument("--setup", choices=["diffuse", "glossy"], default="glossy", help="Object E set-up")
+    p.add_argument("--setup", choices=["diffuse", "glossy", "glazed"], default="glossy",
+                   help="Object E set-up; 'glazed': any object under a uniform Ward glaze (ps 0.3, alpha 0.08)")
     p.add_argument("--rig", choices=["scanner", "pinhole"], default=None,
                    help="rotating-head scanner (default for A-D) or fixed pinhole camera (default for E)")
     p.add_argument("--lights", type=_int_list, default=None, help="rack indices, e.g. 0,7,23 (default all 60)")
