@@ -137,7 +137,8 @@ def make_scan(
     """Render a synthetic scan bundle of object `name`.
 
     **Arguments:** `resolution` mesh resolution (see `objects.make_object`);
-    `setup` 'diffuse' or 'glossy' (Object E only) or 'glazed' (any object: `objects.make_object`); `rig` 'scanner' (default for
+    `setup` 'diffuse' or 'glossy' (Object E only) or 'glazed' (any object:
+    `objects.make_object`); `rig` 'scanner' (default for
     A-D) or 'pinhole' (default for E); `lights` indices into the 60-position
     rack (default: all); `model` 'torrance-sparrow' or 'ward' (the truth is
     stored as `true_sigma` or `true_alpha` accordingly); `global_illumination`
