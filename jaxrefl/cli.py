@@ -142,12 +142,17 @@ def _add_estimate_options(p):
     g.add_argument("--damping", type=float, default=0.5, help="share of each iteration's change taken")
     g.add_argument("--retrace-ess", type=float, default=0.3,
                    help="re-trace the photons when the effective sample size falls below this fraction")
-    g.add_argument("--gather-rays", type=int, default=256,
+    g.add_argument("--gather-rays", type=int, default=1024,
                    help="final-gather rays per observation for the first interreflection bounce (0: the photon "
                         "map gathers every bounce); halved until --gather-budget rays in all")
     g.add_argument("--gather-budget", type=int, default=8_000_000, help="most final-gather rays in all")
     g.add_argument("--min-fit-p", type=float, default=0.05,
                    help="a lobe counts as measured only if its fit passes a chi^2 test at this p-value")
+    g.add_argument("--fill-sd", type=float, default=0.02,
+                   help="each point's lobe is the precision-weighted median of the nearest measured lobes, "
+                        "taken until they pin ln ps and ln alpha to this standard deviation")
+    g.add_argument("--fill-neighbours", type=int, default=64, help="most measured lobes one point's lobe uses")
+    g.add_argument("--polish", type=int, default=10, help="steps (a) at the final lobes")
     g = p.add_argument_group("auto (model only what the scene needs)")
     g.add_argument("--target-error", type=float, default=0.0,
                    help="relative pd error you accept (median per region): a cheaper method that reaches it is "
@@ -325,7 +330,8 @@ def estimate_to_file(scan_path, out, args) -> dict:
     photon = {"photons": args.photons, "iterations": args.iterations, "solver": args.photon_solver,
               "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
               "min_snr": args.min_snr, "window": args.window, "gather_rays": args.gather_rays,
-              "gather_budget": args.gather_budget, "min_fit_p": args.min_fit_p}
+              "gather_budget": args.gather_budget, "min_fit_p": args.min_fit_p, "fill_sd": args.fill_sd,
+              "fill_neighbours": args.fill_neighbours, "polish": args.polish}
     if args.method == "radiosity":
         from .radiosity import RadiosityOptions, estimate_radiosity
 

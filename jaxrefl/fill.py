@@ -12,9 +12,11 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+import jax.numpy as jnp
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
-__all__ = ["vertex_adjacency", "FillResult", "window_fill"]
+__all__ = ["vertex_adjacency", "FillResult", "window_fill", "nearest_candidates", "precise_median"]
 
 
 def vertex_adjacency(faces, n_vertices: int) -> sp.csr_matrix:
@@ -90,3 +92,37 @@ def window_fill(values, known, adjacency: sp.csr_matrix, window: int = 5, max_sw
         out[orphan] = np.median(vals[known], axis=0)
     result = out[:, 0] if squeeze else out
     return FillResult(result, in_window, far)
+
+
+def nearest_candidates(points, candidates, k: int) -> np.ndarray:
+    """`(N, k')` int64: for every row of `points` `(N, 3)` the indices (into `points`)
+    of its `k' = min(k, len(candidates))` nearest `candidates` (indices, Euclidean
+    distance), nearest first."""
+    cand = np.asarray(candidates, dtype=np.int64)
+    if cand.size == 0:
+        raise ValueError("nearest_candidates: no candidate")
+    pts = np.asarray(points, dtype=np.float64)
+    kk = int(min(k, cand.size))
+    _, j = cKDTree(pts[cand]).query(pts, k=kk)
+    return cand[np.asarray(j).reshape(len(pts), kk)]
+
+
+def precise_median(x, weight, nbr, target: float):
+    """Weighted median of `x` `(N,)` over each row's candidates `nbr` `(N, K)` (nearest
+    first), taking them in order until their weights (precisions, `1 / var` of `x`;
+    0 where not measured) sum to `target` (all `K` where they never do). Pure `jnp`.
+
+    **Returns:** `(value, total)` `(N,)`: the median (0 where `total` is 0) and the
+    weight it rests on. A few imprecise neighbours are outvoted by farther precise
+    ones, and any minority of wrong values by the rest (a median, not a mean).
+    """
+    v, w = x[nbr], weight[nbr]
+    before = jnp.cumsum(w, axis=1) - w
+    w = jnp.where(before < target, w, 0.0)
+    order = jnp.argsort(jnp.where(w > 0, v, jnp.inf), axis=1)
+    v, w = jnp.take_along_axis(v, order, 1), jnp.take_along_axis(w, order, 1)
+    total = jnp.sum(w, axis=1)
+    half = jnp.cumsum(w, axis=1) >= 0.5 * total[:, None]
+    pick = jnp.argmax(half & (w > 0), axis=1)
+    value = jnp.take_along_axis(v, pick[:, None], 1)[:, 0]
+    return jnp.where(total > 0, value, 0.0), total
