@@ -5,6 +5,10 @@ mesh the window becomes the `(W - 1) / 2`-ring: the vertices at most that many
 edges away. `window_fill` averages the measured values there; points with no
 measured vertex in their window are then reached by repeated 1-ring averaging
 (diffusion) and reported separately, so callers can flag them `unresolved`.
+
+`precise_median` (with `nearest_candidates`) is the robust alternative Method III
+uses for its lobes: a precision-weighted median of the nearest measured values,
+taken in order of distance until they pin the value to a given precision.
 """
 
 from __future__ import annotations

@@ -118,9 +118,11 @@ def test_cli_estimate_photon(convex, tmp_path, capsys):
 @pytest.mark.slow
 def test_oblique_glossy_fold():
     """§5.3.1 / Figure 22: glossy Object E set obliquely (pinhole rig, tilted 25 deg),
-    rendered with global illumination. Method III's mean pd error beside the fold is
-    at least 2x smaller than Methods I and II at the paper's 2M photons per light
-    (measured: 15.5 % vs 36 % and 42 %; at 1M photons 19.6 %, `RESULTS_inverse_photon.md`)."""
+    rendered with global illumination. At the paper's 2M photons per light and 50
+    iterations Method III's mean pd error beside the fold is about 3 % and at least 2x
+    smaller than Methods I and II (measured on this scan 3.03 % against 36 % and 42 %;
+    2.65-2.98 % over photon seeds on the benchmark's scan, `RESULTS_inverse_photon.md`;
+    the bound leaves room for the data's own noise, 3 % path-tracer error per sample)."""
     scan = _selected_scan("E", 32, setup="glossy", rig="pinhole", tilt_deg=(25.0, 0.0), global_illumination=True,
                           samples=1024, sensor=Sensor(noise=0.01, bits=12, full_scale=8.0), seed=0)
     s = fold_coordinate(make_object("E", 32, "glossy").vertices)
@@ -129,5 +131,6 @@ def test_oblique_glossy_fold():
     err = {"I": _rel(estimate_local(scan, LocalOptions(model="ward")), scan, near).mean(),
            "II": _rel(estimate_radiosity(scan, RadiosityOptions(local=LocalOptions(model="ward"))), scan,
                       near).mean(),
-           "III": _rel(estimate_photon(scan, PhotonOptions(photons=2_000_000, iterations=20)), scan, near).mean()}
+           "III": _rel(estimate_photon(scan, PhotonOptions(photons=2_000_000, iterations=50)), scan, near).mean()}
+    assert err["III"] <= 0.035, err
     assert 2 * err["III"] <= min(err["I"], err["II"]), err
