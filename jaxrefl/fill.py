@@ -6,9 +6,10 @@ edges away. `window_fill` averages the measured values there; points with no
 measured vertex in their window are then reached by repeated 1-ring averaging
 (diffusion) and reported separately, so callers can flag them `unresolved`.
 
-`precise_median` (with `nearest_candidates`) is the robust alternative Method III
-uses for its lobes: a precision-weighted median of the nearest measured values,
-taken in order of distance until they pin the value to a given precision.
+`precise_huber` (with `nearest_candidates`) is the robust alternative Method III
+uses for its lobes: a Huber M-estimate over the nearest measured values, each
+weighted by its precision, taken in order of distance until they pin the value
+to a given precision.
 """
 
 from __future__ import annotations
@@ -16,11 +17,12 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+import jax
 import jax.numpy as jnp
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-__all__ = ["vertex_adjacency", "FillResult", "window_fill", "nearest_candidates", "precise_median"]
+__all__ = ["vertex_adjacency", "FillResult", "window_fill", "nearest_candidates", "precise_huber"]
 
 
 def vertex_adjacency(faces, n_vertices: int) -> sp.csr_matrix:
@@ -111,22 +113,30 @@ def nearest_candidates(points, candidates, k: int) -> np.ndarray:
     return cand[np.asarray(j).reshape(len(pts), kk)]
 
 
-def precise_median(x, weight, nbr, target: float):
-    """Weighted median of `x` `(N,)` over each row's candidates `nbr` `(N, K)` (nearest
-    first), taking them in order until their weights (precisions, `1 / var` of `x`;
-    0 where not measured) sum to `target` (all `K` where they never do). Pure `jnp`.
+def precise_huber(x, weight, nbr, target: float, steps: int = 20, start=None):
+    """Robust pooled value of `x` `(N,)` over each row's candidates `nbr` `(N, K)` (nearest
+    first), taking them in order until their weights (precisions, `1 / var` of `x`; 0
+    where not measured) sum to `target` (all `K` where they never do): the Huber
+    M-estimate `m` with `sum_j w_j clip(x_j - m, -c, c) = 0`, `c = 1 / sqrt(target)`
+    (`steps` iteratively re-weighted means from `start` `(N,)`, by default the most
+    precise candidate; the cost is convex, so the start decides only how many steps
+    it takes, and no sort is needed). Pure `jnp`.
 
-    **Returns:** `(value, total)` `(N,)`: the median (0 where `total` is 0) and the
+    **Returns:** `(value, total)` `(N,)`: the estimate (0 where `total` is 0) and the
     weight it rests on. A few imprecise neighbours are outvoted by farther precise
-    ones, and any minority of wrong values by the rest (a median, not a mean).
+    ones, and a minority of wrong values counts only with weight `c / |x_j - m|`.
     """
     v, w = x[nbr], weight[nbr]
     before = jnp.cumsum(w, axis=1) - w
     w = jnp.where(before < target, w, 0.0)
-    order = jnp.argsort(jnp.where(w > 0, v, jnp.inf), axis=1)
-    v, w = jnp.take_along_axis(v, order, 1), jnp.take_along_axis(w, order, 1)
     total = jnp.sum(w, axis=1)
-    half = jnp.cumsum(w, axis=1) >= 0.5 * total[:, None]
-    pick = jnp.argmax(half & (w > 0), axis=1)
-    value = jnp.take_along_axis(v, pick[:, None], 1)[:, 0]
-    return jnp.where(total > 0, value, 0.0), total
+    c = 1.0 / jnp.sqrt(target)
+    m = jnp.take_along_axis(v, jnp.argmax(w, axis=1)[:, None], 1)[:, 0] if start is None else start
+
+    def step(m, _):
+        u = w * jnp.minimum(1.0, c / jnp.maximum(jnp.abs(v - m[:, None]), 1e-30))
+        den = jnp.sum(u, axis=1)
+        return jnp.where(den > 0, jnp.sum(u * v, axis=1) / jnp.where(den > 0, den, 1.0), m), None
+
+    m, _ = jax.lax.scan(step, m, None, length=steps)
+    return jnp.where(total > 0, m, 0.0), total

@@ -48,8 +48,9 @@ scaled by the reduced chi^2 when above 1) and a fit that passes a chi^2
 goodness-of-fit test at `min_fit_p` (`_identifiable`).
 
 **Lobe fill** (`_fill_lobes`, in every iteration and at the end): each point's
-`ln ps` and `ln alpha` are the precision-weighted median (`fill.precise_median`)
-of the measured lobes nearest it in space (itself first where measured; at most
+`ln ps` and `ln alpha` are the precision-weighted Huber M-estimate, scale
+`fill_sd` (`fill.precise_huber`: a mean of values that agree to `fill_sd`, a
+median of those farther apart), of the measured lobes nearest it in space (itself first where measured; at most
 `fill_neighbours`), taken in order of distance until their precisions
 (`1 / var`) add up to `1 / fill_sd^2`. A lobe measured to `fill_sd` or better
 stands alone; a looser one is outvoted by its neighbours; an unmeasured one is
@@ -86,7 +87,7 @@ import optimistix as optx
 
 from . import brdf
 from .classify import T_DIFF, T_SPEC, Thresholds
-from .fill import nearest_candidates, precise_median, vertex_adjacency, window_reach
+from .fill import nearest_candidates, precise_huber, vertex_adjacency, window_reach
 from .lm import gauss_newton_1d
 from .local import INTERPOLATED, MEASURED, UNRESOLVED, Estimate, LocalOptions, _noise_weights, \
     estimate_local, fill_unobserved_pd, finite_outputs, prepare_rows, quantisation_step
@@ -327,17 +328,20 @@ def _lobe_sd(var_ps, var_rho, chi2, rows):
     return tuple(jnp.where(v > 0, jnp.sqrt(jnp.where(v > 0, v, 1.0) * scale), jnp.inf) for v in (var_ps, var_rho))
 
 
-def _fill_lobes(ps, rho, known, sd_ps, sd_rho, nbr, target):
+def _fill_lobes(ps, rho, known, sd_ps, sd_rho, nbr, target, steps=20, warm=False):
     """`(ps, rho)` `(N,)`: every row's lobe from the measured (`known`) lobes nearest it,
-    itself first where measured (`fill.precise_median` over `nbr`, in `ln ps` and
-    `ln alpha`, each weighted by its precision, until they pin it to `1 / sqrt(target)`):
+    itself first where measured (`fill.precise_huber` over `nbr`, a Huber M-estimate in
+    `ln ps` and `ln alpha`, each weighted by its precision, until they pin it to
+    `1 / sqrt(target)`):
     a lobe measured that precisely stands alone, a looser one is outvoted by its
-    neighbours, an unmeasured one is filled. Rows with no measured candidate keep theirs."""
+    neighbours, an unmeasured one is filled. Rows with no measured candidate keep theirs.
+    `warm`: start from `(ps, rho)` themselves (inside the iterations, where they are the
+    last iteration's fill and `steps` can be few)."""
     ln_ps = jnp.log(jnp.maximum(ps, 1e-12))
     w_ps = jnp.where(known, (ps / sd_ps) ** 2, 0.0)
     w_rho = jnp.where(known, 1.0 / sd_rho**2, 0.0)
-    f_ps, t_ps = precise_median(ln_ps, w_ps, nbr, target)
-    f_rho, t_rho = precise_median(rho, w_rho, nbr, target)
+    f_ps, t_ps = precise_huber(ln_ps, w_ps, nbr, target, steps, ln_ps if warm else None)
+    f_rho, t_rho = precise_huber(rho, w_rho, nbr, target, steps, rho if warm else None)
     return jnp.where(t_ps > 0, jnp.exp(f_ps), ps), jnp.where(t_rho > 0, f_rho, rho)
 
 
@@ -418,7 +422,7 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, n_iter, s
                          for v in _lobe_sd(var_ps, var_rho, chi2, spec_rows))
         ps_new, rho_new = ps.at[lobe_rows].set(ps_k), rho.at[lobe_rows].set(rho_k)
         ps_new, rho_new = _fill_lobes(jnp.where(known, ps_new, ps), jnp.where(known, rho_new, rho), known,
-                                      sd_ps, sd_rho, nbr, fill_target)
+                                      sd_ps, sd_rho, nbr, fill_target, steps=4, warm=True)
         ps = ps + damping * (ps_new - ps)
         rho = rho + damping * (rho_new - rho)
         return ((pd, ps, rho), (best_theta, best_cost)), (cost, mad)
