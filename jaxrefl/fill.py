@@ -109,7 +109,7 @@ def nearest_candidates(points, candidates, k: int) -> np.ndarray:
         raise ValueError("nearest_candidates: no candidate")
     pts = np.asarray(points, dtype=np.float64)
     kk = int(min(k, cand.size))
-    _, j = cKDTree(pts[cand]).query(pts, k=kk)
+    _, j = cKDTree(pts[cand]).query(pts, k=kk, workers=-1)
     return cand[np.asarray(j).reshape(len(pts), kk)]
 
 
