@@ -120,9 +120,9 @@ def test_oblique_glossy_fold():
     """§5.3.1 / Figure 22: glossy Object E set obliquely (pinhole rig, tilted 25 deg),
     rendered with global illumination. At the paper's 2M photons per light and 50
     iterations Method III's mean pd error beside the fold is about 3 % and at least 2x
-    smaller than Methods I and II (measured on this scan 3.03 % against 36 % and 42 %;
-    2.65-2.98 % over photon seeds on the benchmark's scan, `RESULTS_inverse_photon.md`;
-    the bound leaves room for the data's own noise, 3 % path-tracer error per sample)."""
+    smaller than Methods I and II (measured 2.86 % against 36 % and 42 %; 2.55-2.95 % over
+    five photon seeds, `RESULTS_inverse_photon.md`; the bound leaves room for the data's
+    own noise, 3 % path-tracer error per sample)."""
     scan = _selected_scan("E", 32, setup="glossy", rig="pinhole", tilt_deg=(25.0, 0.0), global_illumination=True,
                           samples=1024, sensor=Sensor(noise=0.01, bits=12, full_scale=8.0), seed=0)
     s = fold_coordinate(make_object("E", 32, "glossy").vertices)
