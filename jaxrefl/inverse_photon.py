@@ -50,8 +50,8 @@ goodness-of-fit test at `min_fit_p` (`_identifiable`).
 **Lobe fill** (`_fill_lobes`, in every iteration and at the end): each point's
 `ln ps` and `ln alpha` are the precision-weighted Huber M-estimate, scale
 `fill_sd` (`fill.precise_huber`: a mean of values that agree to `fill_sd`, a
-median of those farther apart), of the measured lobes nearest it in space (itself first where measured; at most
-`fill_neighbours`), taken in order of distance until their precisions
+median of those farther apart), of the measured lobes nearest it in space
+(itself first where measured; at most `fill_neighbours`), taken in order of distance until their precisions
 (`1 / var`) add up to `1 / fill_sd^2`. A lobe measured to `fill_sd` or better
 stands alone; a looser one is outvoted by its neighbours; an unmeasured one is
 filled from the nearest measured ones, reaching as far as it takes to pin it.
@@ -66,8 +66,9 @@ there 5-15 % off, depending on the photon seed.
 **pd at the final lobes** (`polish` steps (a), undamped, lobes fixed): `pd` is
 taken to the fixed point of its own interreflection under the final lobes. The
 kept iterate's `pd` was fitted against the lobes of its own iteration, which
-the fill and the damping still moved; on Object E that left pd beside the
-fold 3-5 % further off than the same lobes, held fixed, give.
+the fill and the damping still moved; on Object E refitting only the filled
+points, once, left pd beside the fold 2-3 points further off (4.6-6.5 % against
+2.9-3.3 %).
 
 Per-point lights (a rotating scanner, `light_pos` `(N, M, 3)`) are binned into
 light configurations as Method II (`radiosity.light_configs`, `light_bin`);
