@@ -200,6 +200,15 @@ def test_ps_is_method_threes_wherever_it_runs_else_method_ones():
     p3 = auto.plan(scan, m, auto.AutoOptions(rings=0))
     assert p3.run == "photon" and np.all(p3.method[block] == 2)
     assert np.any(p3.method == 0) and np.all(p3.ps_method == 2)
+    # Method III running, the points left to Method I that have a lobe of their own take its pd
+    # too (not extended where only Method II runs)
+    lobed = ij[:, 0] < 3
+    m.local = SimpleNamespace(specular_identifiable=lobed)
+    p3l = auto.plan(scan, m, auto.AutoOptions(rings=0))
+    np.testing.assert_array_equal(p3l.method, np.where(lobed, 2, p3.method))
+    assert p3l.extended[lobed].all() and not p3l.extended[~lobed & (p3.method == 0)].any()
+    assert np.array_equal(auto.plan(scan, dataclasses.replace(m, gain_specular=np.zeros(len(v))),
+                                    auto.AutoOptions(rings=0, methods=("local", "radiosity"))).method, p2.method)
 
     n = len(v)
 
