@@ -73,8 +73,10 @@ only method near the best pd), else from Method I (Method II's ps against Method
 the points with g > 0.02 of the seed-0 scans: D 3.0x, A 1.10x, B 0.95x).
 
 Method III (`jaxrefl.inverse_photon`) is imported only when needed; it fits the
-Ward model, so it is a candidate only with `local.model == 'ward'` and when the
-module is present. `meta['auto']` of the result reports the measured
+Ward model, so it is a candidate only with `local.model == 'ward'`, when the
+module is present, and when Method I measured a specular lobe somewhere (without
+one it models the same light as Method II, with Monte Carlo noise: on diffuse E
+the noise floors alone sent auto to Method III at 16.6x Method II's time). `meta['auto']` of the result reports the measured
 statistics, the predicted errors, every region and the reasons.
 """
 
@@ -632,6 +634,10 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     available, unavailable = [], {}
     for k in options.methods:
         ok, why = photon_available(options.local.model) if k == "photon" else (True, "")
+        if ok and k == "photon" and not measures.local.specular_identifiable.any():
+            # Method III differs from Method II only in the light specular lobes interreflect.
+            ok, why = False, ("no specular lobe measured anywhere (Method I): Method III would model the same "
+                              "light as Method II, with Monte Carlo noise, at many times its cost")
         (available.append(k) if ok else unavailable.__setitem__(k, why))
     p = plan(scan, measures, options, available)
     seconds["plan"] = time.perf_counter() - t0

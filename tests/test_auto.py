@@ -320,6 +320,18 @@ def test_fold_needs_inverse_radiosity_and_the_form_factors_are_cast_once(fold_sc
     assert all(r["predicted"]["radiosity"]["pd"] < r["predicted"]["local"]["pd"] for r in a["regions"])
 
 
+def test_photon_is_no_candidate_where_no_lobe_is_measured(fold_scan, fresh_cache):
+    """White paper under Ward at the default target: Method I measures no lobe anywhere, so
+    Method III (which differs from Method II only in the light lobes interreflect) is left
+    out with the reason, and the fold goes to Method II."""
+    options = auto.AutoOptions(local=LocalOptions(model="ward"), radiosity=RadiosityOptions(rays=64))
+    est = auto.estimate_auto(fold_scan, options)
+    a = est.meta["auto"]
+    assert not est.meta["runs"].get("photon")
+    assert "photon" in a["unavailable"] and "no specular lobe" in a["unavailable"]["photon"]
+    assert a["global_method"] == "radiosity"
+
+
 def test_photon_is_a_candidate_only_for_ward_and_when_installed(monkeypatch):
     ok, why = auto.photon_available("torrance-sparrow")
     assert not ok and "Ward" in why
