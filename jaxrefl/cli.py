@@ -149,7 +149,7 @@ def _add_estimate_options(p):
     g.add_argument("--min-fit-p", type=float, default=0.05,
                    help="a lobe counts as measured only if its fit passes a chi^2 test at this p-value")
     g.add_argument("--fill-sd", type=float, default=0.02,
-                   help="each point's lobe is the precision-weighted median of the nearest measured lobes, "
+                   help="each point's lobe is a precision-weighted Huber estimate over the nearest measured lobes, "
                         "taken until they pin ln ps and ln alpha to this standard deviation")
     g.add_argument("--fill-neighbours", type=int, default=64, help="most measured lobes one point's lobe uses")
     g.add_argument("--polish", type=int, default=10, help="steps (a) at the final lobes")
