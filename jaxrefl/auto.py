@@ -438,10 +438,22 @@ def _shortfall(parts: dict, candidates, method: str, core, options) -> tuple:
     return (worst, METHODS.index(method))
 
 
+_NO_LOBE = ("no specular lobe measured anywhere (Method I): Method III would model the same light as Method II, "
+            "with Monte Carlo noise, at many times its cost")
+
+
+def _no_lobe(measures: Measures) -> bool:
+    """Method I measured no specular lobe anywhere: Method III, which differs from Method II
+    only in the light specular lobes interreflect, is then no candidate (False when the
+    measures carry no Method I estimate)."""
+    return measures.local is not None and not measures.local.specular_identifiable.any()
+
+
 def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), available=None) -> Plan:
     """Regions and a method per region (module docstring); `available` the runnable
-    candidates (default `options.methods`)."""
-    available = [k for k in METHODS if k in (available if available is not None else options.methods)]
+    candidates (default `options.methods`; Method III left out where `_no_lobe`)."""
+    available = [k for k in METHODS if k in (available if available is not None else options.methods)
+                 and not (k == "photon" and _no_lobe(measures))]
     model = options.model
     parts = predict_parts(measures, model, available)
     errors = {k: {q: np.hypot(*v[q]) for q in v} for k, v in parts.items()}
@@ -634,10 +646,8 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     available, unavailable = [], {}
     for k in options.methods:
         ok, why = photon_available(options.local.model) if k == "photon" else (True, "")
-        if ok and k == "photon" and not measures.local.specular_identifiable.any():
-            # Method III differs from Method II only in the light specular lobes interreflect.
-            ok, why = False, ("no specular lobe measured anywhere (Method I): Method III would model the same "
-                              "light as Method II, with Monte Carlo noise, at many times its cost")
+        if ok and k == "photon" and _no_lobe(measures):
+            ok, why = False, _NO_LOBE
         (available.append(k) if ok else unavailable.__setitem__(k, why))
     p = plan(scan, measures, options, available)
     seconds["plan"] = time.perf_counter() - t0
