@@ -146,8 +146,12 @@ def _add_estimate_options(p):
                    help="final-gather rays per observation for the first interreflection bounce (0: the photon "
                         "map gathers every bounce); halved until --gather-budget rays in all")
     g.add_argument("--gather-budget", type=int, default=8_000_000, help="most final-gather rays in all")
-    g.add_argument("--min-fit-p", type=float, default=0.05,
-                   help="a lobe counts as measured only if its fit passes a chi^2 test at this p-value")
+    g.add_argument("--min-fit-p", type=float, default=0.0,
+                   help="a lobe counts as measured only if its fit passes a chi^2 test at this p-value (0: no "
+                        "test; a misfit lobe's covariance is inflated by its chi^2 either way)")
+    g.add_argument("--fill-pd-scale", type=float, default=0.2,
+                   help="the lobe fill pools lobes of alike diffuse albedo: a neighbour whose pd is this share "
+                        "apart counts e^-1 (0: pool regardless of pd)")
     g.add_argument("--fill-sd", type=float, default=0.02,
                    help="each point's lobe is a precision-weighted Huber estimate over the nearest measured lobes, "
                         "taken until they pin ln ps and ln alpha to this standard deviation")
@@ -331,6 +335,7 @@ def estimate_to_file(scan_path, out, args) -> dict:
               "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
               "min_snr": args.min_snr, "window": args.window, "gather_rays": args.gather_rays,
               "gather_budget": args.gather_budget, "min_fit_p": args.min_fit_p, "fill_sd": args.fill_sd,
+              "fill_pd_scale": args.fill_pd_scale,
               "fill_neighbours": args.fill_neighbours, "polish": args.polish}
     if args.method == "radiosity":
         from .radiosity import RadiosityOptions, estimate_radiosity

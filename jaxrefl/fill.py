@@ -113,30 +113,57 @@ def nearest_candidates(points, candidates, k: int) -> np.ndarray:
     return cand[np.asarray(j).reshape(len(pts), kk)]
 
 
-def precise_huber(x, weight, nbr, target: float, steps: int = 20, start=None):
+def precise_huber(x, weight, nbr, target: float, steps: int = 30, start=None, affinity=None):
     """Robust pooled value of `x` `(N,)` over each row's candidates `nbr` `(N, K)` (nearest
     first), taking them in order until their weights (precisions, `1 / var` of `x`; 0
-    where not measured) sum to `target` (all `K` where they never do): the Huber
-    M-estimate `m` with `sum_j w_j clip(x_j - m, -c, c) = 0`, `c = 1 / sqrt(target)`
-    (`steps` iteratively re-weighted means from `start` `(N,)`, by default the most
-    precise candidate; the cost is convex, so the start decides only how many steps
-    it takes, and no sort is needed). Pure `jnp`.
+    where not measured; times `affinity` `(N, K)` in `[0, 1]` where given: how far
+    candidate `k` speaks for row `n`) sum to `target` (all `K` where they never do): the Huber
+    M-estimate `m` with `psi(m) = sum_j w_j clip(x_j - m, -c, c) = 0`, `c = 1 / sqrt(target)`.
+
+    Without `start`: `steps` bisections of `psi` (monotone, piecewise linear) between the
+    smallest and largest candidate taken, then one secant step: exact to the float
+    precision by about 30 steps, whatever the spread. With `start` `(N,)` (a warm
+    start, inside an iteration whose last value is near): `steps` iteratively
+    re-weighted means, each lowering the Huber cost; cheap near the root, but slow
+    (as a median's Weiszfeld steps) where the candidates lie farther apart than `c`.
+    Pure `jnp`, no sort.
 
     **Returns:** `(value, total)` `(N,)`: the estimate (0 where `total` is 0) and the
     weight it rests on. A few imprecise neighbours are outvoted by farther precise
     ones, and a minority of wrong values counts only with weight `c / |x_j - m|`.
     """
     v, w = x[nbr], weight[nbr]
+    if affinity is not None:
+        w = w * affinity
     before = jnp.cumsum(w, axis=1) - w
     w = jnp.where(before < target, w, 0.0)
     total = jnp.sum(w, axis=1)
     c = 1.0 / jnp.sqrt(target)
-    m = jnp.take_along_axis(v, jnp.argmax(w, axis=1)[:, None], 1)[:, 0] if start is None else start
 
-    def step(m, _):
-        u = w * jnp.minimum(1.0, c / jnp.maximum(jnp.abs(v - m[:, None]), 1e-30))
-        den = jnp.sum(u, axis=1)
-        return jnp.where(den > 0, jnp.sum(u * v, axis=1) / jnp.where(den > 0, den, 1.0), m), None
+    def psi(m):
+        return jnp.sum(w * jnp.clip(v - m[:, None], -c, c), axis=1)
 
-    m, _ = jax.lax.scan(step, m, None, length=steps)
+    if start is None:
+        used = w > 0
+        lo = jnp.min(jnp.where(used, v, jnp.inf), axis=1)
+        hi = jnp.max(jnp.where(used, v, -jnp.inf), axis=1)
+        lo, hi = jnp.where(total > 0, lo, 0.0), jnp.where(total > 0, hi, 0.0)
+
+        def halve(bracket, _):
+            lo, hi = bracket
+            mid = 0.5 * (lo + hi)
+            right = psi(mid) > 0  # the root lies above mid
+            return (jnp.where(right, mid, lo), jnp.where(right, hi, mid)), None
+
+        (lo, hi), _ = jax.lax.scan(halve, (lo, hi), None, length=steps)
+        p_lo, p_hi = psi(lo), psi(hi)
+        gap = p_lo - p_hi
+        m = jnp.where(gap > 0, lo + p_lo * (hi - lo) / jnp.where(gap > 0, gap, 1.0), 0.5 * (lo + hi))
+    else:
+        def step(m, _):
+            u = w * jnp.minimum(1.0, c / jnp.maximum(jnp.abs(v - m[:, None]), 1e-30))
+            den = jnp.sum(u, axis=1)
+            return jnp.where(den > 0, jnp.sum(u * v, axis=1) / jnp.where(den > 0, den, 1.0), m), None
+
+        m, _ = jax.lax.scan(step, jnp.asarray(start).astype(jnp.result_type(v, w)), None, length=steps)
     return jnp.where(total > 0, m, 0.0), total

@@ -44,15 +44,26 @@ Outer iteration `k` (all points at once, `jax.lax.scan` inside one `jit`):
 After the iterations the specular part counts as measured where the point has
 a `T_spec` sample, two or more samples in step (b), `ps` above `min_snr`
 standard deviations, `ln alpha` known to +-1 (Gauss-Newton covariance,
-scaled by the reduced chi^2 when above 1) and a fit that passes a chi^2
-goodness-of-fit test at `min_fit_p` (`_identifiable`).
+scaled by the reduced chi^2 when above 1), and, where `min_fit_p` > 0, a fit
+that passes a chi^2 goodness-of-fit test at that p-value (`_identifiable`).
+The test is off by default: a lobe its samples do not fit (reduced chi^2 of
+3-180 beside Object E's fold) already carries a covariance inflated by that
+chi^2, so the precision-weighted fill below outvotes it; the test, on top,
+also threw away good lobes on Objects A and B (A's legs and feet, B's bands
+of varying ps: 329 of 553 lobes kept on B, its lobes then filled from too few)
+and doubled the image error there (seed 0, the Table 2 scenes).
 
 **Lobe fill** (`_fill_lobes`, in every iteration and at the end): each point's
 `ln ps` and `ln alpha` are the precision-weighted Huber M-estimate, scale
 `fill_sd` (`fill.precise_huber`: a mean of values that agree to `fill_sd`, a
 median of those farther apart), of the measured lobes nearest it in space
 (itself first where measured; at most `fill_neighbours`), taken in order of distance until their precisions
-(`1 / var`) add up to `1 / fill_sd^2`. A lobe measured to `fill_sd` or better
+(`1 / var`) add up to `1 / fill_sd^2`; each precision is scaled by how alike the two
+points' diffuse albedo is (`_material_affinity`, scale `fill_pd_scale`: pd
+apart by that share counts e^-1; from the pd at the start of every
+`check_every` iterations, and the final pd at the end), so lobes are pooled within a material and
+not across its edge (on Object B the fill had given the black, glossy feet the
+lobe of the dark, matte legs and the gold handle the torso's). A lobe measured to `fill_sd` or better
 stands alone; a looser one is outvoted by its neighbours; an unmeasured one is
 filled from the nearest measured ones, reaching as far as it takes to pin it.
 The point's status says `interpolated` where a measured lobe lies in its
@@ -120,7 +131,7 @@ class PhotonOptions:
     `gather_rays` final-gather rays per observation for the first bounce
     (`jaxrefl.final_gather`; 0: the photon map gathers every bounce), halved
     until the scan's total fits `gather_budget`; `min_snr`, `min_fit_p` the
-    identifiability test; `fill_sd`, `fill_neighbours` the lobe fill;
+    identifiability test; `fill_sd`, `fill_neighbours`, `fill_pd_scale` the lobe fill;
     `polish` steps (a) at the final lobes; `window` the ring that decides
     `interpolated` against `unresolved`; `local` Method I options of the start (Ward)."""
 
@@ -137,9 +148,10 @@ class PhotonOptions:
     gather_budget: int = 8_000_000
     seed: int = 0
     min_snr: float = 3.0
-    min_fit_p: float = 0.05
+    min_fit_p: float = 0.0
     fill_neighbours: int = 64
     fill_sd: float = 0.02
+    fill_pd_scale: float = 0.2
     polish: int = 10
     window: int = 5
     local: LocalOptions = field(default_factory=lambda: LocalOptions(model="ward"))
@@ -151,8 +163,8 @@ class PhotonOptions:
             raise ValueError("photons must be >= 1000; iterations, steps, check_every >= 1")
         if self.gather_rays < 0 or self.gather_budget < 1:
             raise ValueError("gather_rays must be >= 0 and gather_budget >= 1")
-        if not self.fill_sd > 0 or self.fill_neighbours < 1 or self.polish < 0:
-            raise ValueError("fill_sd must be > 0, fill_neighbours >= 1, polish >= 0")
+        if not self.fill_sd > 0 or self.fill_neighbours < 1 or self.polish < 0 or not self.fill_pd_scale >= 0:
+            raise ValueError("fill_sd must be > 0, fill_neighbours >= 1, polish >= 0, fill_pd_scale >= 0")
         if not 0 < self.damping <= 1:
             raise ValueError("damping must lie in (0, 1]")
         if not 0 <= self.retrace_ess < 1:
@@ -329,7 +341,24 @@ def _lobe_sd(var_ps, var_rho, chi2, rows):
     return tuple(jnp.where(v > 0, jnp.sqrt(jnp.where(v > 0, v, 1.0) * scale), jnp.inf) for v in (var_ps, var_rho))
 
 
-def _fill_lobes(ps, rho, known, sd_ps, sd_rho, nbr, target, steps=20, warm=False):
+@partial(jax.jit, static_argnames=("scale",))
+def _material_affinity(pd, nbr, scale):
+    """`(N, K)` in `[0, 1]`: how far the candidate lobes `nbr` `(N, K)` speak for each row,
+    from how alike their diffuse albedo is: `exp(-((d - d_min) / scale)^2)`, `d` the RGB
+    distance of the two `pd` relative to their mean length, `d_min` the row's smallest (a
+    row with no alike candidate keeps its most alike ones); None (all alike) where
+    `scale` is 0. A relative distance, not one of `ln pd` per channel: a dark channel's
+    noise would part points of one material."""
+    if not scale:
+        return None
+    a, b = pd[:, None, :], pd[nbr]
+    size = 0.5 * (jnp.linalg.norm(a, axis=-1) + jnp.linalg.norm(b, axis=-1))
+    d = jnp.linalg.norm(a - b, axis=-1) / jnp.maximum(size, 1e-6)
+    d = d - jnp.min(d, axis=1, keepdims=True)
+    return jnp.exp(-jnp.minimum((d / scale) ** 2, 50.0))
+
+
+def _fill_lobes(ps, rho, known, sd_ps, sd_rho, nbr, target, steps=30, warm=False, affinity=None):
     """`(ps, rho)` `(N,)`: every row's lobe from the measured (`known`) lobes nearest it,
     itself first where measured (`fill.precise_huber` over `nbr`, a Huber M-estimate in
     `ln ps` and `ln alpha`, each weighted by its precision, until they pin it to
@@ -341,8 +370,8 @@ def _fill_lobes(ps, rho, known, sd_ps, sd_rho, nbr, target, steps=20, warm=False
     ln_ps = jnp.log(jnp.maximum(ps, 1e-12))
     w_ps = jnp.where(known, (ps / sd_ps) ** 2, 0.0)
     w_rho = jnp.where(known, 1.0 / sd_rho**2, 0.0)
-    f_ps, t_ps = precise_huber(ln_ps, w_ps, nbr, target, steps, ln_ps if warm else None)
-    f_rho, t_rho = precise_huber(rho, w_rho, nbr, target, steps, rho if warm else None)
+    f_ps, t_ps = precise_huber(ln_ps, w_ps, nbr, target, steps, ln_ps if warm else None, affinity)
+    f_rho, t_rho = precise_huber(rho, w_rho, nbr, target, steps, rho if warm else None, affinity)
     return jnp.where(t_ps > 0, jnp.exp(f_ps), ps), jnp.where(t_rho > 0, f_rho, rho)
 
 
@@ -389,9 +418,10 @@ def _parts(data, static, index, fg, pd, ps, rho):
 
 @partial(jax.jit, static_argnames=("static", "n_iter", "solver", "steps"))
 def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, n_iter, solver, steps, damping,
-           min_snr, min_fit_p, fill_target):
+           min_snr, min_fit_p, fill_target, affinity):
     """`n_iter` outer iterations from `theta = (pd, ps, rho)`; `best = (theta, cost)`;
-    `lobe_rows` `(K,)` int32 the points with lobe evidence (the only ones step (b) fits).
+    `lobe_rows` `(K,)` int32 the points with lobe evidence (the only ones step (b) fits);
+    `affinity` `(N, K')` (or None) the material affinity of the fill's candidates `nbr`.
 
     **Returns:** `(theta, best, history)`, `history = (cost, mean_abs)` `(n_iter,)`
     each: the image difference of the estimate each iteration started from."""
@@ -423,7 +453,7 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, n_iter, s
                          for v in _lobe_sd(var_ps, var_rho, chi2, spec_rows))
         ps_new, rho_new = ps.at[lobe_rows].set(ps_k), rho.at[lobe_rows].set(rho_k)
         ps_new, rho_new = _fill_lobes(jnp.where(known, ps_new, ps), jnp.where(known, rho_new, rho), known,
-                                      sd_ps, sd_rho, nbr, fill_target, steps=4, warm=True)
+                                      sd_ps, sd_rho, nbr, fill_target, steps=4, warm=True, affinity=affinity)
         ps = ps + damping * (ps_new - ps)
         rho = rho + damping * (rho_new - rho)
         return ((pd, ps, rho), (best_theta, best_cost)), (cost, mad)
@@ -550,9 +580,10 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     while done < options.iterations:
         n_iter = min(options.check_every, options.iterations - done)
         t0 = time.perf_counter()
+        affinity = _material_affinity(theta[0], nbr, options.fill_pd_scale)  # per block: pd moves slowly
         theta, best, (c, m) = _block(replay.data, replay.static, index, fg, rows, lobe_rows, nbr, theta, best, n_iter,
                                      options.solver, options.steps, options.damping, options.min_snr,
-                                     options.min_fit_p, fill_target)
+                                     options.min_fit_p, fill_target, affinity)
         costs += np.asarray(c).tolist()
         mads += np.asarray(m).tolist()
         done += n_iter
@@ -592,7 +623,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         nbr_f = jnp.asarray(nearest_candidates(scan.vertices, np.flatnonzero(identifiable), options.fill_neighbours))
         ps, rho = (np.array(x, np.float64) for x in _fill_lobes(
             jnp.asarray(ps), jnp.asarray(rho), jnp.asarray(identifiable), jnp.asarray(sd_ps), jnp.asarray(sd_rho),
-            nbr_f, fill_target))
+            nbr_f, fill_target, affinity=_material_affinity(jnp.asarray(pd), nbr_f, options.fill_pd_scale)))
         alpha = np.exp(rho)
         in_window = window_reach(adjacency, options.window) @ identifiable.astype(np.float64) > 0
         status[~identifiable] = np.where(in_window[~identifiable], INTERPOLATED, UNRESOLVED)
