@@ -51,7 +51,7 @@ The test is off by default: a lobe its samples do not fit (reduced chi^2 of
 chi^2, so the precision-weighted fill below outvotes it; the test, on top,
 also threw away good lobes on Objects A and B (A's legs and feet, B's bands
 of varying ps: 329 of 553 lobes kept on B, its lobes then filled from too few)
-and doubled the image error there (seed 0, the Table 2 scenes).
+and raised the image error there 1.4-1.8x (seed 0, the Table 2 scenes).
 
 **Lobe fill** (`_fill_lobes`, in every iteration and at the end): each point's
 `ln ps` and `ln alpha` are the precision-weighted Huber M-estimate, scale
