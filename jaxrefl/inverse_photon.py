@@ -332,11 +332,16 @@ def _spec_information(ps, rho, args, pd, d, joint):
     return jax.vmap(one)(ps, rho, *args, pd, d, joint)
 
 
+def _dof(n_b):
+    """Degrees of freedom of a lobe fit `(N,)`: 3 channels per step (b) sample, less ps and alpha (at least 1)."""
+    return jnp.maximum(3.0 * n_b - 2.0, 1.0)
+
+
 def _lobe_sd(var_ps, var_rho, chi2, rows):
     """Standard deviations `(sd_ps, sd_rho)` of a lobe fit: its covariance scaled by the
     reduced chi^2 where that exceeds 1 (infinite where the variance is not positive:
     a near-singular information matrix is no information)."""
-    dof = jnp.maximum(3.0 * rows["n_b"] - 2.0, 1.0)
+    dof = _dof(rows["n_b"])
     scale = jnp.maximum(1.0, chi2 / dof)
     return tuple(jnp.where(v > 0, jnp.sqrt(jnp.where(v > 0, v, 1.0) * scale), jnp.inf) for v in (var_ps, var_rho))
 
@@ -383,7 +388,7 @@ def _identifiable(ps, var_ps, var_rho, chi2, rows, min_snr, min_fit_p):
     samples the model does not explain (interreflection it gets wrong, a bad normal)
     is biased however small its covariance; on Object E such lobes, beside the fold,
     carried reduced chi^2 of 3-180 and alpha errors of 20-170 %."""
-    dof = jnp.maximum(3.0 * rows["n_b"] - 2.0, 1.0)
+    dof = _dof(rows["n_b"])
     sd_ps, sd_rho = _lobe_sd(var_ps, var_rho, chi2, rows)
     # The noise model of the weights may be off by a factor on real data: chi^2 is
     # measured against the median reduced chi^2 of the lobe fits (when above 1).
@@ -543,7 +548,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     t0 = time.perf_counter()
     rows, q_step = _fit_rows(scan, rows_np)
     use = rows_np["use"]
-    joint, b_mask, lobe = (np.asarray(rows[k]) for k in ("joint", "b", "lobe"))
+    joint, lobe = (np.asarray(rows[k]) for k in ("joint", "lobe"))
     lobe_rows = jnp.asarray(np.flatnonzero(lobe), jnp.int32)
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
     nbr = jnp.asarray(nearest_candidates(scan.vertices, np.flatnonzero(lobe), options.fill_neighbours), jnp.int32) \
@@ -613,7 +618,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     alpha = np.exp(rho)
 
     # Identifiability of the specular part, then the fill and pd with it.
-    dof = np.maximum(3.0 * b_mask.sum(1) - 2.0, 1.0)
+    dof = np.asarray(_dof(rows["n_b"]), np.float64)
     sd_ps, sd_rho = (np.asarray(v, np.float64) for v in _lobe_sd(fin["var_ps"], fin["var_rho"], fin["chi2"], rows))
     identifiable = np.asarray(_identifiable(jnp.asarray(ps), fin["var_ps"], fin["var_rho"], fin["chi2"], rows,
                                             options.min_snr, options.min_fit_p))
