@@ -109,6 +109,14 @@ def _add_estimate(sub):
     p.add_argument("scan", help="scan bundle (.npz) with radiance")
     p.add_argument("--out", required=True, help="result file to write (.npz)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    g = p.add_argument_group("held-out lights (validation)")
+    h = g.add_mutually_exclusive_group()
+    h.add_argument("--holdout", type=float, default=None, metavar="F",
+                   help="fit without this fraction of the lights (drawn with --holdout-seed), then relight the "
+                        "estimate under them and report its error against their images")
+    h.add_argument("--holdout-lights", default=None, metavar="I,J,...",
+                   help="fit without these observations (comma-separated light indices) and report the error there")
+    g.add_argument("--holdout-seed", type=int, default=0, help="seed of the lights --holdout draws")
     _add_estimate_options(p)
 
 
@@ -328,9 +336,24 @@ def estimate_to_file(scan_path, out, args) -> dict:
                            min_snr=args.min_snr, solver=args.solver, pool=args.pool)
     if args.rays < 1 or args.outer < 1 or not args.light_bin >= 0:
         raise ValueError("rays, outer: must be >= 1; light-bin: must be >= 0")
+    holdout, holdout_lights = getattr(args, "holdout", None), getattr(args, "holdout_lights", None)
+    if holdout is not None and not 0 < holdout < 1:
+        raise ValueError(f"holdout: the fraction of lights held out must lie in (0, 1), got {holdout}")
+    if holdout_lights is not None:
+        try:
+            holdout_lights = [int(t) for t in str(holdout_lights).split(",")]
+        except ValueError:
+            raise ValueError(f"holdout-lights: expected comma-separated light indices, "
+                             f"got {holdout_lights!r}") from None
     t0 = time.perf_counter()
     scan = load_scan(scan_path)
     load_seconds = time.perf_counter() - t0
+    held = None
+    if holdout is not None or holdout_lights is not None:
+        from .holdout import choose_holdout, split_scan
+
+        held = choose_holdout(scan.n_lights, holdout, holdout_lights, getattr(args, "holdout_seed", 0))
+        scan, test_scan = split_scan(scan, held)  # the estimator sees the fitted lights only
     photon = {"photons": args.photons, "iterations": args.iterations, "solver": args.photon_solver,
               "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
               "min_snr": args.min_snr, "window": args.window, "gather_rays": args.gather_rays,
@@ -360,6 +383,12 @@ def estimate_to_file(scan_path, out, args) -> dict:
     else:
         est = estimate_local(scan, options)
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
+    if held is not None:
+        from .holdout import evaluate_holdout
+
+        evaluate_holdout(est, test_scan)
+        if holdout is not None:
+            est.meta["holdout"].update(fraction=holdout, seed=getattr(args, "holdout_seed", 0))
     save_result(out, est)
     return {"method": args.method, "model": est.model, "out": str(out), **estimate_summary(est, scan)}
 
@@ -377,7 +406,8 @@ def estimate_summary(est, scan) -> dict:
                           for code, name in enumerate(("measured", "interpolated", "unresolved"))},
     }
     summary.update({k: est.meta[k] for k in ("outer_iterations", "form_factors", "light_configurations",
-                                             "image_difference", "best_iteration", "retraces", "auto")
+                                             "image_difference", "best_iteration", "retraces", "auto",
+                                             "holdout")
                     if k in est.meta})
     if scan.true_pd is not None:
         summary["errors"] = truth_errors(est, scan)
@@ -391,7 +421,28 @@ def cmd_estimate(args) -> int:
     else:
         print(f"wrote {args.out}: {summary['coverage']:.1%} of observed points measured "
               f"({summary['status_counts']})")
+        if "holdout" in summary:
+            print(holdout_line(summary["holdout"]))
     return 0
+
+
+def holdout_line(h: dict) -> str:
+    """One line of text for a `holdout` block (see `jaxrefl.holdout.holdout_error`)."""
+    lights = h["lights"] if len(h["lights"]) <= 12 else h["lights"][:12] + ["..."]
+    model = "direct light" if h["gi"] == "none" else f"direct light + {h['gi']} interreflection"
+    head = f"held-out lights {lights} ({model}): "
+    if h["rel_rms"] is None:
+        return head + f"no error: {h.get('reason')}"
+    text = (f"{head}relative RMS error {h['rel_rms']:.2%}, median per sample {h['median_rel']:.2%} "
+            f"over {h['samples']} samples")
+    truth = h.get("truth")
+    if truth is not None:
+        text += (f"; the ground truth's {truth['rel_rms']:.2%} (noise floor)" if truth["rel_rms"] is not None
+                 else f"; ground truth: {truth.get('reason')}")
+    per = [f"{i}: {e:.1%}" if e is not None else f"{i}: -" for i, e in zip(h["lights"], h["per_light_rel_rms"])]
+    if len(per) > 1:
+        text += "\n  per light: " + ", ".join(per[:24]) + (" ..." if len(per) > 24 else "")
+    return text
 
 
 def cmd_batch(args) -> int:
@@ -681,7 +732,10 @@ def cmd_demo(args) -> int:
 
     summary = run_demo(args.out, resolution=args.resolution, samples=args.samples, seed=args.seed,
                        progress=_progress())
-    print(json.dumps({k: summary[k] for k in ("out", "seconds", "files")}, indent=2))
+    h = summary["holdout_A"]
+    holdout = {"held_out_lights": len(h["lights"]), "samples": h["samples"], "rel_rms": h["rel_rms"],
+               "median_rel": h["median_rel"], "truth_rel_rms": h.get("truth", {}).get("rel_rms")}
+    print(json.dumps({**{k: summary[k] for k in ("out", "seconds", "files")}, "holdout_A": holdout}, indent=2))
     return 0
 
 

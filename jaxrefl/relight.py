@@ -76,11 +76,17 @@ def indirect(model_gi, vertices, faces, normals, est: Estimate, light_pos, inten
 def direct_radiance(vertices, normals, est: Estimate, light_pos, intensity, cam_pos,
                     caster: RayCaster) -> np.ndarray:
     """Direct radiance `(N, 3)` [W/(sr m^2)] of every vertex toward `cam_pos` `(3,)`
-    under a point light at `light_pos` `(3,)` of `intensity` [W/sr], with Embree shadows."""
+    under a point light at `light_pos` `(3,)` of `intensity` [W/sr], with Embree shadows.
+    Either position may also be `(N, 3)`: one per vertex (a light or camera riding a
+    scanner head)."""
     if est.model not in brdf.MODELS:
         raise ValueError(f"model: unknown reflectance model {est.model!r}")
-    light_pos = np.asarray(light_pos, dtype=np.float64).reshape(1, 3)
-    g = observation_geometry(vertices, normals, np.asarray(cam_pos, dtype=np.float64), light_pos)
+    n = len(vertices)
+    light_pos = np.asarray(light_pos, dtype=np.float64)
+    light_pos = light_pos.reshape(n, 1, 3) if light_pos.shape == (n, 3) else light_pos.reshape(1, 3)
+    cam_pos = np.asarray(cam_pos, dtype=np.float64)
+    cam_pos = cam_pos.reshape(n, 1, 3) if cam_pos.shape == (n, 3) else cam_pos.reshape(3)
+    g = observation_geometry(vertices, normals, cam_pos, light_pos)
     cos_i, cos_o, theta_r = (jnp.asarray(a)[:, 0] for a in (g.cos_i, g.cos_o, g.theta_r))
     full, _ = brdf.MODELS[est.model]
     log_rough = jnp.log(jnp.maximum(jnp.asarray(est.roughness, dtype=cos_i.dtype), 1e-12))

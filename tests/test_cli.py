@@ -82,6 +82,9 @@ def test_demo_writes_summary_and_pictures(tmp_path):
         assert (out / name).stat().st_size > 0
     assert any(n.endswith(".png") for n in summary["files"])
     assert summary["object_E_diffuse"]["gi_over_direct_within_2cm_of_fold"] > 1.1
+    holdout = summary["holdout_A"]  # Method I relit under the candidate lights the capture did not use
+    assert 0 < holdout["truth"]["rel_rms"] < holdout["rel_rms"] < 0.5 and holdout["samples"] > 0
+    assert json.loads(r.stdout)["holdout_A"]["rel_rms"] == holdout["rel_rms"]
     for f in summary["furnace"]:
         assert abs(f["z"]) < 5
 
