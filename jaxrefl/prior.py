@@ -1,0 +1,382 @@
+"""The shared reflectance prior: materials, their lobes, and how far each point leans on them.
+
+A point's own samples may pin its specular lobe (ps, ln roughness `rho`), or see it in one
+light, off-specular, or not at all. The object shares reflectance where it shares a
+material, so the lobe is modelled in two levels, every constant of which comes from the data:
+
+1. **Materials** (`fit_materials`): a diagonal Gaussian mixture over per-point features
+   (pd per channel; ln ps and `rho` where the point's own lobe is measured, each with the
+   point's own variance added, so a point without a lobe is clustered by its colour alone).
+   K = 1 .. `k_max`, chosen by the Bayesian information criterion.
+2. **A material's lobe** (`material_lobes`): the joint maximum-likelihood fit of one
+   (ps, `rho`) to all the material's samples at once, every point's pd profiled out. Points
+   that each see one half-angle together see many.
+3. **Within a material the lobe varies smoothly** (`lobe_prior`): the prior mean of a point is
+   the precision-weighted mean of the measured lobes among its nearest material-mates, with
+   the material's lobe as one more observation; the prior's width is the spread of the
+   measured lobes about their (leave-one-out) means beyond their own noise (empirical Bayes,
+   robust method of moments), as it grows with the distance to the lobes a mean rests on,
+   never wider than the material's whole spread nor narrower than the estimate can resolve
+   from the points it rests on.
+
+Each point's estimate is then the maximum a posteriori of its own likelihood and this prior
+(the row solver lives with the likelihood, in `jaxrefl.local`), and `status_from_posterior`
+names which of the two dominated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LobePrior", "lobe_prior",
+           "status_from_posterior"]
+
+_VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
+#: Fewest own lobes from which a material's spread is estimated (a variance from fewer
+#: points is too uncertain to widen or narrow a prior); with fewer, the material's lobe.
+_MIN_SPREAD_POINTS = 8
+_RESTARTS = 4  # seedings of the mixture per K
+
+
+@dataclass(frozen=True)
+class Materials:
+    """Material labels `(N,)` int in `[0, k)`, the chosen `k`, and the BIC of every K tried."""
+
+    labels: np.ndarray
+    k: int
+    bic: dict
+
+
+def _log_density(x, v, mu, tau2, log_w):
+    """Per point and component log density `(n, K)` of the diagonal mixture; dimensions with
+    infinite observation variance `v` are marginalised out."""
+    present = np.isfinite(v)
+    var = tau2[None] + np.where(present, v, 0.0)[:, None]  # (n, K, D)
+    d2 = (np.where(present, x, 0.0)[:, None] - mu[None]) ** 2 / var
+    terms = np.where(present[:, None], d2 + np.log(2 * np.pi * var), 0.0)
+    return log_w[None] - 0.5 * terms.sum(-1)
+
+
+def _em(x, v, k, rng, iterations=200):
+    """EM for a k-component diagonal mixture with per-point observation variances. Returns
+    (log likelihood, mu, tau2, log_w) or None when a component collapses."""
+    n, dim = x.shape
+    present = np.isfinite(v)
+    colour = x[:, :3]
+    # k-means++ seeds on colour (always present), deterministic through `rng`.
+    centres = [colour[rng.integers(n)]]
+    for _ in range(1, k):
+        d2 = np.min(((colour[:, None] - np.array(centres)[None]) ** 2).sum(-1), 1)
+        centres.append(colour[rng.choice(n, p=d2 / d2.sum())] if d2.sum() > 0 else colour[rng.integers(n)])
+    centres = np.array(centres)
+    for _ in range(10):  # Lloyd's iterations on colour: the seeds move to the clusters' middles
+        nearest = np.argmin(((colour[:, None] - centres[None]) ** 2).sum(-1), 1)
+        centres = np.array([colour[nearest == j].mean(0) if np.any(nearest == j) else centres[j] for j in range(k)])
+    resp = np.zeros((n, k))
+    resp[np.arange(n), np.argmin(((colour[:, None] - centres[None]) ** 2).sum(-1), 1)] = 1.0
+    mu, tau2, log_w = np.zeros((k, dim)), np.ones((k, dim)), np.full(k, -np.log(k))
+    previous = -np.inf
+    for _ in range(iterations):
+        nk = resp.sum(0)
+        if np.any(nk < max(2.0, 2 * dim)):
+            return None
+        log_w = np.log(nk / n)
+        for d in range(dim):
+            p = present[:, d]
+            for j in range(k):
+                r = resp[p, j]
+                if r.sum() <= 0:
+                    mu[j, d], tau2[j, d] = 0.0, 1.0
+                    continue
+                w = r / (tau2[j, d] + v[p, d])
+                mu[j, d] = np.sum(w * x[p, d]) / np.sum(w)
+                moment = np.sum(r * ((x[p, d] - mu[j, d]) ** 2 - v[p, d])) / r.sum()
+                tau2[j, d] = max(moment, _VAR_FLOOR)
+        logp = _log_density(x, v, mu, tau2, log_w)
+        top = logp.max(1, keepdims=True)
+        total = top[:, 0] + np.log(np.exp(logp - top).sum(1))
+        resp = np.exp(logp - total[:, None])
+        ll = float(total.sum())
+        if ll - previous < 1e-7 * abs(ll) + 1e-9:
+            break
+        previous = ll
+    return ll, mu, tau2, log_w
+
+
+def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 4000,
+                  seed: int = 0) -> Materials:
+    """Cluster points into materials, K chosen by BIC.
+
+    **Arguments:** `features` `(N, D)` (the first three the colour, pd, always present for
+    observed points), `variances` `(N, D)` their observation variances (inf: missing, NaN not
+    allowed); `positions` `(N, 3)` (points with no feature at all take the label of the
+    nearest point that has one); `k_max`; `sample`: the mixture is fitted on at most this
+    many points (every point is then assigned); `seed` of that subsample and of the seeds.
+
+    **Returns:** `Materials`.
+    """
+    x, v = np.asarray(features, np.float64), np.asarray(variances, np.float64)
+    n = len(x)
+    has = np.isfinite(v).any(1)
+    idx = np.flatnonzero(has)
+    if len(idx) == 0:
+        return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
+    rng = np.random.default_rng(seed)
+    fit_idx = np.sort(rng.choice(idx, size=min(sample, len(idx)), replace=False))
+    xs, vs = x[fit_idx], v[fit_idx]
+    n_fit, dim = xs.shape
+    best, bic = None, {}
+    for k in range(1, k_max + 1):
+        # A few seedings per K: k-means++ can start two components in one material, which
+        # then collapse; the best likelihood of those that do not is kept.
+        tries = [_em(xs, vs, k, np.random.default_rng([seed, k, r])) for r in range(_RESTARTS)]
+        tries = [t for t in tries if t is not None]
+        if not tries:
+            continue
+        res = max(tries, key=lambda t: t[0])
+        ll = res[0]
+        bic[k] = -2.0 * ll + (k - 1 + 2 * k * dim) * np.log(n_fit)
+        if best is None or bic[k] < bic[best[0]]:
+            best = (k, res)
+    if best is None:
+        return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
+    k, (_, mu, tau2, log_w) = best
+    labels = np.zeros(n, np.int64)
+    labels[idx] = np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
+    if not has.all():
+        _, j = cKDTree(positions[idx]).query(positions[~has], k=1)
+        labels[~has] = labels[idx][j]
+    return Materials(labels, k, bic)
+
+
+@dataclass(frozen=True)
+class MaterialLobes:
+    """Per material `(K,)`: `ps`, `rho` (ln roughness), their standard deviations, the
+    number of points it rests on, and `identifiable` (ps stands `min_snr` sd above 0 and
+    `rho` is known to within 1, a factor e in roughness)."""
+
+    ps: np.ndarray
+    rho: np.ndarray
+    sd_ps: np.ndarray
+    sd_rho: np.ndarray
+    points: np.ndarray
+    identifiable: np.ndarray
+
+
+def _material_sums(reduced, labels, k, inv_s2):
+    """Per material chi^2 coefficients `(G, K)` each: `C`, `A`, `B` of
+    `chi2(ps) = C - 2 ps B + ps^2 A` from the per-row reduced sums `(G, 3, N)`."""
+    g = reduced.shape[0]
+    out = np.zeros((3, g, k))
+    for q in range(3):
+        for i in range(g):
+            out[q, i] = np.bincount(labels, weights=reduced[i, q] * inv_s2, minlength=k)
+    return out
+
+
+def _profile(c, a, b):
+    """chi^2 at the best ps >= 0 and that ps, elementwise."""
+    a_safe = np.where(a > 0, a, 1.0)
+    ps = np.where((a > 0) & (b > 0), b / a_safe, 0.0)
+    return c - 2.0 * ps * b + ps * ps * a, ps
+
+
+def material_lobes(reduced_at, labels, k, inv_s2, rho_grid, min_snr: float = 3.0,
+                   peak_samples=None) -> MaterialLobes:
+    """Joint fit of one lobe per material over all its points' samples.
+
+    **Arguments:** `reduced_at(rho)` with `rho` `(G, N)` ln roughness per grid value and
+    row returns `(G, 3, N)`: per row the weighted squared-residual coefficients
+    `(c0, a, b)` of `cost(ps) = c0 - 2 ps b + ps^2 a` with the row's pd profiled out;
+    `labels` `(N,)`; `k`; `inv_s2` `(N,)` 1 / residual variance scale (0 leaves a row out);
+    `rho_grid` `(G,)` ln roughness values to search; `peak_samples` `(N,)` int: each row's
+    samples near a specular peak (`classify.T_SPEC`). A material whose rows hold fewer than
+    two is not identifiable, whatever its fit: a lobe no sample saw near its peak is a
+    smooth trend over its flank, which light the model leaves out (interreflection)
+    imitates.
+
+    **Returns:** `MaterialLobes`. The best grid value per material is refined on a finer
+    grid around it and by a parabola, whose curvature gives `sd_rho`; `sd_ps` from the
+    chi^2 curvature in ps at that roughness.
+    """
+    n = len(labels)
+    grid = np.asarray(rho_grid, np.float64)
+    coarse = reduced_at(np.broadcast_to(grid[:, None], (len(grid), n)))
+    c, a, b = _material_sums(coarse, labels, k, inv_s2)
+    chi2, _ = _profile(c, a, b)
+    best = np.argmin(np.where(np.isfinite(chi2), chi2, np.inf), axis=0)  # (K,)
+    step = float(np.mean(np.diff(grid)))
+    offsets = np.linspace(-step, step, 9)
+    centre = grid[best]
+    fine = reduced_at(centre[labels][None] + offsets[:, None])
+    c, a, b = _material_sums(fine, labels, k, inv_s2)
+    chi2, ps_g = _profile(c, a, b)
+    j = np.clip(np.argmin(chi2, axis=0), 1, len(offsets) - 2)
+    cols = np.arange(k)
+    y0, y1, y2 = chi2[j - 1, cols], chi2[j, cols], chi2[j + 1, cols]
+    h = offsets[1] - offsets[0]
+    curv = (y0 - 2 * y1 + y2) / h**2  # d^2 chi2 / d rho^2
+    shift = np.where(curv > 0, -0.5 * (y2 - y0) / (h * np.where(curv > 0, curv, 1.0)), 0.0)
+    shift = np.clip(shift, -h, h)
+    rho = centre + offsets[j] + shift
+    at = reduced_at(rho[labels][None])
+    c, a, b = _material_sums(at, labels, k, inv_s2)
+    _, ps = _profile(c[0], a[0], b[0])
+    sd_ps = np.where(a[0] > 0, 1.0 / np.sqrt(np.where(a[0] > 0, a[0], 1.0)), np.inf)
+    # chi2 = min + (curv / 2) d^2, so -ln L = chi2 / 2 has curvature curv / 2: var = 2 / curv.
+    sd_rho = np.where(curv > 0, np.sqrt(2.0 / np.where(curv > 0, curv, 1.0)), np.inf)
+    points = np.bincount(labels, weights=(inv_s2 > 0).astype(np.float64), minlength=k)
+    ident = (points > 0) & (ps > min_snr * sd_ps) & (sd_rho < 1.0) & np.isfinite(rho)
+    if peak_samples is not None:
+        ident &= np.bincount(labels, weights=np.asarray(peak_samples, np.float64), minlength=k) >= 2
+    return MaterialLobes(ps, rho, sd_ps, sd_rho, points, ident)
+
+
+@dataclass(frozen=True)
+class LobePrior:
+    """Per point `(N,)`: prior mean and variance of ps and of `rho` (ln roughness);
+    `available` where a prior exists (its material's lobe is identifiable or the material
+    has points with their own lobe); `spread_ps`, `spread_rho` `(K,)` the within-material
+    spreads found (variances)."""
+
+    mean_ps: np.ndarray
+    var_ps: np.ndarray
+    mean_rho: np.ndarray
+    var_rho: np.ndarray
+    available: np.ndarray
+    spread_ps: np.ndarray
+    spread_rho: np.ndarray
+
+
+def _robust_spread(deviation, own_var):
+    """Variance of `deviation` `(n,)` beyond the noise `own_var` `(n,)`: the squared scaled
+    median absolute deviation less the median noise variance; 0 unless the deviations'
+    robust scale in units of their own standard deviations exceeds 1 by two of its standard
+    errors (the scaled MAD's is about `1.16 / sqrt(n)`): a spread from a few points must be
+    significant to widen a prior, and a few wrong own fits must not (a moment would let them)."""
+    n = len(deviation)
+    scale = lambda x: 1.4826 * np.median(np.abs(x - np.median(x)))  # noqa: E731
+    if scale(deviation / np.sqrt(own_var)) <= 1.0 + 2.0 * 1.16 / np.sqrt(n):
+        return 0.0
+    return max(scale(deviation) ** 2 - float(np.median(own_var)), 0.0)
+
+
+def _smooth_means(values, var, own, positions, neighbours, anchor, anchor_var, at=None, min_distance=0.0):
+    """Precision-weighted mean of the `neighbours` nearest own-measured values, self left out
+    and none closer than `min_distance`, with `anchor` `(N,)` (variance `anchor_var`) as one
+    more observation; at the points `at` (indices; default all). Returns `(mean,
+    var_of_mean, nearest)`, each `(len(at),)`: `nearest` the distance to the closest
+    neighbour used."""
+    n = len(values)
+    at = np.arange(n) if at is None else np.asarray(at)
+    idx = np.flatnonzero(own)
+    anchor_var = np.broadcast_to(anchor_var, (n,))
+    if len(idx) == 0:
+        return anchor[at].copy(), anchor_var[at].copy(), np.full(len(at), np.inf)
+    kk = min((4 if min_distance > 0 else 1) * neighbours + 1, len(idx))
+    dist, j = cKDTree(positions[idx]).query(positions[at], k=kk)
+    dist, nbr = np.asarray(dist).reshape(len(at), kk), idx[np.asarray(j).reshape(len(at), kk)]
+    usable = (nbr != at[:, None]) & (dist >= min_distance)
+    usable &= np.cumsum(usable, axis=1) <= neighbours
+    w = np.where(usable, 1.0 / var[nbr], 0.0)
+    w0 = 1.0 / anchor_var[at]
+    total = w.sum(1) + w0
+    mean = (np.sum(w * values[nbr], 1) + w0 * anchor[at]) / total
+    nearest = np.min(np.where(usable, dist, np.inf), axis=1)
+    return mean, 1.0 / total, nearest
+
+
+def _distance_spread(value, var, mine, positions, neighbours, centre, anchor_var, total, nearest, resolution):
+    """Spread `(N,)` of each point's value about its local mean as it grows with `nearest`
+    `(N,)`, the distance to the closest measured lobe its mean rests on. At quantiles of
+    those distances each measured point's value is predicted from measured neighbours no
+    closer than that distance, and the robust spread of the misses (beyond their noise) is
+    the spread there; non-decreasing in distance, interpolated, at most `total`."""
+    n = len(value)
+    at = np.flatnonzero(mine)
+    finite = nearest[np.isfinite(nearest)]
+    levels = np.unique(np.quantile(finite, [0.0, 0.25, 0.5, 0.75, 0.95])) if len(finite) else np.zeros(1)
+    centres, spreads = [], []
+    for level in levels:
+        mean, mean_var, used = _smooth_means(value, var + total, mine, positions, neighbours, np.full(n, centre),
+                                             anchor_var + total, at, level)
+        ok = np.isfinite(used)
+        if ok.sum() >= _MIN_SPREAD_POINTS:
+            centres.append(float(np.median(used[ok])))
+            spreads.append(_robust_spread((value[at] - mean)[ok], (var[at] + mean_var)[ok]))
+    if not centres:
+        return np.full(n, total + resolution)
+    order = np.argsort(centres)
+    centres = np.asarray(centres)[order]
+    spreads = np.maximum.accumulate(np.minimum(np.asarray(spreads)[order], total))
+    return np.interp(np.where(np.isfinite(nearest), nearest, centres[-1]), centres, spreads) + resolution
+
+
+def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, positions,
+               neighbours: int = 16) -> LobePrior:
+    """Empirical-Bayes prior of every point's lobe.
+
+    **Arguments:** each point's own fit `ps`, `var_ps`, `rho`, `var_rho` `(N,)` and `own`
+    `(N,)` bool (its own samples pin its lobe); `labels` `(N,)`; `lobes` the materials'
+    joint fits; `positions` `(N, 3)`; `neighbours` measured material-mates in the local mean.
+
+    Within each material the spread of the measured lobes about their leave-one-out local
+    means beyond their own variance is the prior's width (`_robust_spread`); it is never
+    taken below `median own variance * sqrt(2 / n)`, the resolution of a variance estimate
+    from `n` points.
+    """
+    n = len(ps)
+    k = len(lobes.ps)
+    out = {key: np.zeros(n) for key in ("mean_ps", "var_ps", "mean_rho", "var_rho")}
+    available = np.zeros(n, bool)
+    spreads = np.full((2, k), np.inf)
+    for m in range(k):
+        members = labels == m
+        mine = own & members
+        if not (lobes.identifiable[m] or mine.any()):
+            continue
+        available[members] = True
+        for d, (value, var, anchor, anchor_sd) in enumerate(
+                ((ps, var_ps, lobes.ps[m], lobes.sd_ps[m]), (rho, var_rho, lobes.rho[m], lobes.sd_rho[m]))):
+            anchor_var = anchor_sd**2 if np.isfinite(anchor_sd) else np.inf
+            own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
+            if mine.sum() >= _MIN_SPREAD_POINTS:
+                centre = anchor if np.isfinite(anchor_var) else float(np.median(own_values))
+                resolution = float(np.median(own_var)) * np.sqrt(2.0 / mine.sum()) + _VAR_FLOOR
+                # Neighbours differ from the point by the material's spread, and so does the
+                # material's value: the local mean follows the measured field where it is dense.
+                total = _robust_spread(own_values - centre, own_var)
+                var_f = np.maximum(var, _VAR_FLOOR)
+                mean, mean_var, nearest = _smooth_means(value, var_f + total + resolution, mine, positions,
+                                                        neighbours, np.full(n, centre),
+                                                        anchor_var + total + resolution)
+                spread = _distance_spread(value, var_f, mine, positions, neighbours, centre, anchor_var, total,
+                                          nearest, resolution)
+            elif np.isfinite(anchor_var):
+                mean, mean_var, spread = np.full(n, anchor), np.full(n, anchor_var), 0.0
+            else:  # a few own lobes and no material lobe: too little to say what the others are
+                mean, mean_var, spread = np.zeros(n), np.full(n, np.inf), np.inf
+            spread = np.broadcast_to(spread, (n,))
+            out["mean_" + ("ps", "rho")[d]][members] = mean[members]
+            out["var_" + ("ps", "rho")[d]][members] = mean_var[members] + spread[members]
+            spreads[d, m] = float(np.median(spread[members]))
+    available &= np.isfinite(out["var_ps"]) & np.isfinite(out["var_rho"]) & np.isfinite(out["mean_ps"]) \
+        & np.isfinite(out["mean_rho"])
+    for key in ("var_ps", "var_rho"):
+        out[key] = np.where(available, np.maximum(out[key], _VAR_FLOOR), np.inf)
+    for key in ("mean_ps", "mean_rho"):
+        out[key] = np.where(available, out[key], 0.0)
+    return LobePrior(out["mean_ps"], out["var_ps"], out["mean_rho"], out["var_rho"], available,
+                     spreads[0], spreads[1])
+
+
+def status_from_posterior(own, var_own_ps, var_own_rho, prior: LobePrior):
+    """`(measured, pooled)` `(N,)` bool: `measured` where the point's own samples pin its lobe
+    and carry at least the prior's precision in both ps and `rho`; `pooled` where not, but a
+    prior exists."""
+    dominates = (var_own_ps <= prior.var_ps) & (var_own_rho <= prior.var_rho)
+    measured = own & (dominates | ~prior.available)
+    return measured, ~measured & prior.available
