@@ -39,7 +39,7 @@ SUMMARY_SUFFIX = "_result.json"
 # Errors of the input itself: running the scan again would fail the same way.
 INPUT_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError,
                 zipfile.BadZipFile)
-CSV_COLUMNS = ("name", "status", "seconds", "coverage", "points", "pd_err_median", "pd_err_p90",
+CSV_COLUMNS = ("name", "status", "seconds", "coverage", "known", "points", "pd_err_median", "pd_err_p90",
                "ps_err_median", "ps_err_p90", "roughness_err_median", "roughness_err_p90", "scan", "error")
 
 
@@ -205,15 +205,17 @@ def _error_stats(record, name):
 def _row(record) -> dict:
     row = {"name": record["name"], "status": record["status"], "scan": record["scan"],
            "seconds": record.get("wall_seconds"), "coverage": record.get("coverage"),
-           "points": record.get("points"), "error": record.get("error", "")}
+           "known": record.get("known"), "points": record.get("points"), "error": record.get("error", "")}
     for name in ("pd", "ps", "roughness"):
         row[f"{name}_err_median"], row[f"{name}_err_p90"] = _error_stats(record, name)
     return row
 
 
 def summary_table(records) -> tuple[str, str]:
-    """(CSV text, Markdown text) of a batch: one row per scan. Errors are median and 90th
-    percentile relative errors against the scan's ground truth over measured points."""
+    """(CSV text, Markdown text) of a batch: one row per scan. `coverage` (measured) and
+    `known` (measured or pooled) are shares of the observed points (`jaxrefl.cli.estimate_summary`).
+    Errors are median and 90th percentile relative errors against the scan's ground truth over
+    measured points."""
     rows = [_row(r) for r in records]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
@@ -224,14 +226,15 @@ def summary_table(records) -> tuple[str, str]:
     def num(v, fmt):
         return "-" if v is None else format(v, fmt)
 
-    lines = ["| scan | status | seconds | coverage | pd err (median / p90) | ps err | roughness err | error |",
-             "|---|---|---:|---:|---|---|---|---|"]
+    lines = ["| scan | status | seconds | measured | measured or pooled | pd err (median / p90) | ps err | "
+             "roughness err | error |",
+             "|---|---|---:|---:|---:|---|---|---|---|"]
     for row in rows:
         errs = [f"{num(row[f'{n}_err_median'], '.2%')} / {num(row[f'{n}_err_p90'], '.2%')}"
                 if row[f"{n}_err_median"] is not None else "-" for n in ("pd", "ps", "roughness")]
         error = row["error"].replace("|", "\\|")
         lines.append(f"| {row['name']} | {row['status']} | {num(row['seconds'], '.1f')} | "
-                     f"{num(row['coverage'], '.1%')} | {' | '.join(errs)} | {error} |")
+                     f"{num(row['coverage'], '.1%')} | {num(row['known'], '.1%')} | {' | '.join(errs)} | {error} |")
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "skipped", "failed")}
     lines.append("")
     lines.append(f"{len(rows)} scans: {counts['done']} done, {counts['skipped']} skipped, {counts['failed']} failed")

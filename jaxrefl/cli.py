@@ -129,14 +129,23 @@ def _add_estimate_options(p):
                         "auto: the cheapest of them predicted to meet --target-error, per region")
     p.add_argument("--model", choices=["torrance-sparrow", "ward"], default="torrance-sparrow")
     p.add_argument("--paper", action="store_true",
-                   help="the paper's estimator: Eq. 5 single best diffuse sample, Eq. 7 from two samples")
-    p.add_argument("--window", type=int, default=5, help="interpolation window W (a (W-1)/2-ring)")
+                   help="the paper's estimator: Eq. 5 single best diffuse sample, Eq. 7 from two samples, "
+                        "the gated lobe fill (no shared prior)")
+    p.add_argument("--window", type=int, default=5,
+                   help="interpolation window W (a (W-1)/2-ring): where points without a lobe of their own "
+                        "(with the prior: unresolved ones) take it from")
     p.add_argument("--steps", type=int, default=15, help="Newton steps of the polish in ln roughness (solver lm)")
     p.add_argument("--solver", choices=["lm", "optimistix"], default="lm")
     p.add_argument("--min-snr", type=float, default=3.0, help="ps / std(ps) needed to call it measured")
+    p.add_argument("--prior", action=argparse.BooleanOptionalAction, default=True,
+                   help="Method I: a shared reflectance prior (default): materials chosen by BIC, one lobe fitted "
+                        "jointly per material, each point's lobe the posterior mode of its own samples and the "
+                        "prior (status measured or pooled); --no-prior: the gated rules (--pool, --window)")
+    p.add_argument("--materials", type=int, default=6, metavar="K",
+                   help="most materials the prior tries (K = 1..this, chosen by BIC)")
     p.add_argument("--pool", action=argparse.BooleanOptionalAction, default=True,
-                   help="points without their own lobe share one fitted with same-colour neighbours "
-                        "(default; --no-pool: window interpolation only)")
+                   help="with --no-prior: points without their own lobe share one fitted with same-colour "
+                        "neighbours (default; --no-pool: window interpolation only)")
     g = p.add_argument_group("radiosity (Method II)")
     g.add_argument("--rays", type=int, default=256, help="form-factor rays per patch (vertex)")
     g.add_argument("--light-bin", type=float, default=0.1,
@@ -333,7 +342,10 @@ def estimate_to_file(scan_path, out, args) -> dict:
     from .result import save_result
 
     options = LocalOptions(model=args.model, paper=args.paper, steps=args.steps, window=args.window,
-                           min_snr=args.min_snr, solver=args.solver, pool=args.pool)
+                           min_snr=args.min_snr, solver=args.solver, pool=args.pool,
+                           prior=getattr(args, "prior", True), materials=getattr(args, "materials", 6))
+    if options.materials < 1:
+        raise ValueError(f"materials: must be >= 1, got {options.materials}")
     if args.rays < 1 or args.outer < 1 or not args.light_bin >= 0:
         raise ValueError("rays, outer: must be >= 1; light-bin: must be >= 0")
     holdout, holdout_lights = getattr(args, "holdout", None), getattr(args, "holdout_lights", None)
@@ -395,20 +407,25 @@ def estimate_to_file(scan_path, out, args) -> dict:
 
 def estimate_summary(est, scan) -> dict:
     """Seconds per stage, coverage, status counts and (with ground truth) errors of `est`."""
+    from .local import MEASURED, POOLED, STATUS_NAMES
     from .result import truth_errors
 
     observed = max(int(est.pd_measured.sum()), 1)
     summary = {
         "seconds": est.meta["seconds"],
         "points": int(len(est.status)),
-        "coverage": float(np.sum(est.status == 0) / observed),
-        "status_counts": {name: int(np.sum(est.status == code))
-                          for code, name in enumerate(("measured", "interpolated", "unresolved"))},
+        # measured: the lobe is the point's own; known: its own or pinned by the shared prior
+        "coverage": float(np.sum(est.pd_measured & (est.status == MEASURED)) / observed),
+        "known": float(np.sum(est.pd_measured & np.isin(est.status, (MEASURED, POOLED))) / observed),
+        "status_counts": {name: int(np.sum(est.status == code)) for code, name in enumerate(STATUS_NAMES)},
     }
-    summary.update({k: est.meta[k] for k in ("outer_iterations", "form_factors", "light_configurations",
-                                             "image_difference", "best_iteration", "retraces", "auto",
-                                             "holdout")
+    summary.update({k: est.meta[k] for k in ("materials", "material_lobes", "outer_iterations", "form_factors",
+                                             "light_configurations", "image_difference", "best_iteration",
+                                             "retraces", "auto", "holdout")
                     if k in est.meta})
+    if "material_lobes" in summary:  # strict JSON: an unknown std or spread (inf) is null
+        summary["material_lobes"] = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                                      for k, v in lobe.items()} for lobe in summary["material_lobes"]]
     if scan.true_pd is not None:
         summary["errors"] = truth_errors(est, scan)
     return summary
@@ -419,11 +436,34 @@ def cmd_estimate(args) -> int:
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"wrote {args.out}: {summary['coverage']:.1%} of observed points measured "
-              f"({summary['status_counts']})")
+        counts = ", ".join(f"{n} {name}" for name, n in summary["status_counts"].items())
+        print(f"wrote {args.out}: {summary['coverage']:.1%} of observed points measured, "
+              f"{summary['known']:.1%} measured or pooled ({counts})")
+        if "materials" in summary:
+            print(materials_lines(summary))
         if "holdout" in summary:
             print(holdout_line(summary["holdout"]))
     return 0
+
+
+def materials_lines(summary: dict) -> str:
+    """Text for the shared prior's materials (`materials`, `material_lobes` of a summary):
+    the chosen K, then one line per material: its joint lobe with standard deviations and the
+    spread of its points' lobes (standard deviations; roughness's relative, from ln roughness)."""
+    def num(value, scale=1.0, root=False, unit=""):
+        if value is None or not np.isfinite(value):
+            return "?"
+        return f"{scale * (np.sqrt(value) if root else value):.2g}{unit}"
+
+    k = summary["materials"]
+    lines = [f"prior: {k} material{'s' if k != 1 else ''} (BIC)"]
+    for m, lobe in enumerate(summary.get("material_lobes", [])):
+        lines.append(f"  material {m}: {lobe['points']} points, ps {lobe['ps']:.3g} +- {num(lobe['std_ps'])}, "
+                     f"roughness {lobe['roughness']:.3g} rad +- {num(lobe['std_ln_roughness'], 100, unit='%')}; "
+                     f"spread within it: ps {num(lobe['spread_ps'], root=True)}, "
+                     f"roughness {num(lobe['spread_ln_roughness'], 100, True, '%')}"
+                     + ("" if lobe.get("identifiable", True) else " (joint lobe not identifiable)"))
+    return "\n".join(lines)
 
 
 def holdout_line(h: dict) -> str:

@@ -5,8 +5,9 @@ scanner and all 60 candidate lights, direct lighting, 1 % noise, 12-bit
 sensor; Object E, diffuse set-up, with global illumination), pictures of
 their ground truth and observations, the light selection for Object A (§2.2,
 Figure 8 analogue), Method I on Object A captured under those lights (result
-file, estimated maps, status map, errors against truth; the reflectance-map
-figure, a PLY export, and a relit picture under a new light beside the truth),
+file, estimated maps, status map with one colour per status, errors against
+truth; the reflectance-map figure, a PLY export, and a relit picture under a
+new light beside the truth),
 the error of that estimate relit under the candidate lights the capture did not
 use against their images (held-out lights, `jaxrefl.holdout`), the path
 tracer's furnace test and convergence study, and `summary.json` with every
@@ -98,7 +99,7 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
     from .classify import classify_scan
     from .io import atomic_write, save_scan
     from .lights import plot_coverage, select_lights
-    from .local import estimate_local
+    from .local import MEASURED, POOLED, STATUS_NAMES, estimate_local
     from .raycast import RayCaster
     from .result import save_result, truth_errors
     from .export import export_ply
@@ -145,8 +146,8 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
                     render.colormap(render.shade(hits, captured.faces, estimate.ps, shape), "magma"))
     render.save_png(out_path("A_estimated_sigma.png"),
                     render.colormap(render.shade(hits, captured.faces, estimate.roughness, shape), "gray"))
-    render.save_png(out_path("A_status.png"), render.colormap(
-        render.shade(hits, captured.faces, estimate.status.astype(float), shape), "RdYlGn_r", vmin=0, vmax=2))
+    render.status_figure(out_path("A_status.png"), hits, shape, captured.faces, estimate.status,
+                         title="Object A, Method I: status")
     seconds["method_I_A"] = time.perf_counter() - t
 
     # Held-out lights: the estimate relit under the candidate lights the capture did not use,
@@ -209,8 +210,13 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
         "light_selection_A": {k: v for k, v in selection.to_json().items() if k != "curve"},
         "method_I_A": {
             "lights": len(selection.selected),
-            "measured_share_of_observed": float(np.sum(estimate.status == 0) / max(estimate.pd_measured.sum(), 1)),
-            "status_counts": np.bincount(estimate.status, minlength=3).tolist(),
+            "measured_share_of_observed": float(np.sum(estimate.pd_measured & (estimate.status == MEASURED))
+                                                / max(estimate.pd_measured.sum(), 1)),
+            "known_share_of_observed": float(np.sum(estimate.pd_measured
+                                                    & np.isin(estimate.status, (MEASURED, POOLED)))
+                                             / max(estimate.pd_measured.sum(), 1)),
+            "status_counts": {name: int(np.sum(estimate.status == code)) for code, name in enumerate(STATUS_NAMES)},
+            "materials": estimate.meta.get("materials"),
             "errors": errors_a,
         },
         "holdout_A": holdout_a,

@@ -6,8 +6,10 @@ sRGB-encoded vertex colours `red green blue alpha` (for viewing), and float32
 properties: `pd_r pd_g pd_b` (the linear albedo itself), `ps`, `sigma` or
 `alpha` [rad] (by the result's model), `std_pd_r std_pd_g std_pd_b std_ps`
 and `std_sigma` / `std_alpha` (inf where unknown); uchar `status` (0
-measured, 1 interpolated, 2 unresolved), `specular_identifiable` and
-`pd_measured` (0/1). Faces are the scan's triangles.
+measured, 1 interpolated, 2 unresolved, 3 pooled: `jaxrefl.local.STATUS_NAMES`),
+`specular_identifiable` and `pd_measured` (0/1), and where the result has
+the shared prior's materials, uchar `material` (the label of each point).
+Faces are the scan's triangles.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ def result_mesh(vertices, faces, normals, est: Estimate):
                   "status": np.asarray(est.status, dtype=np.uint8),
                   "specular_identifiable": np.asarray(est.specular_identifiable, dtype=np.uint8),
                   "pd_measured": np.asarray(est.pd_measured, dtype=np.uint8)})
+    if est.material is not None:
+        attrs["material"] = np.asarray(est.material, dtype=np.uint8)
     for name, value in attrs.items():
         if np.any(np.isnan(value)):
             raise ValueError(f"{name}: {int(np.isnan(value).sum())} NaN value(s) in the result")

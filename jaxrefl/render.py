@@ -24,6 +24,10 @@ __all__ = [
     "save_png",
     "scan_picture",
     "reflectance_figure",
+    "status_figure",
+    "status_colormap",
+    "STATUS_NAMES",
+    "STATUS_COLOURS",
     "comparison_figure",
 ]
 
@@ -161,8 +165,54 @@ def scan_picture(scan, what: str = "radiance", light: int = 0, view: str = "auto
 
 # -- figures (matplotlib) ----------------------------------------------------------------
 
-STATUS_NAMES = ("measured", "interpolated", "unresolved")
-_STATUS_COLOURS = ("#2ca02c", "#f2c200", "#d62728")
+#: Status names by code, as `jaxrefl.local.STATUS_NAMES` (not imported: this module stays
+#: free of JAX), and one discrete colour each: measured green, interpolated yellow,
+#: unresolved red, pooled blue.
+STATUS_NAMES = ("measured", "interpolated", "unresolved", "pooled")
+STATUS_COLOURS = ("#2ca02c", "#f2c200", "#d62728", "#1f77b4")
+
+
+def status_colormap():
+    """`(cmap, norm)`: a ListedColormap of `STATUS_COLOURS` (white where not hit) and the
+    BoundaryNorm that maps every status code to its own colour."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    n = len(STATUS_NAMES)
+    return ListedColormap(STATUS_COLOURS).with_extremes(bad="white"), BoundaryNorm(np.arange(n + 1) - 0.5, n)
+
+
+def _status_image(hits: Hits, shape, faces, status) -> np.ndarray:
+    """`(H, W)` float: the status code of the nearest vertex of each hit face (categorical:
+    never a blend), NaN off the object."""
+    nearest = faces[np.maximum(hits.face, 0), np.argmax(hits.barycentric, axis=1)]
+    return np.where(hits.hit, np.asarray(status, dtype=np.float64)[nearest], np.nan).reshape(shape)
+
+
+def _draw_status(fig, ax, image, status) -> None:
+    """The status map `image` on `ax`, with a legend of the four statuses and their shares of
+    all points."""
+    from matplotlib.patches import Patch
+
+    cmap, norm = status_colormap()
+    ax.imshow(np.ma.masked_invalid(image), cmap=cmap, norm=norm, interpolation="nearest")
+    counts = np.bincount(np.asarray(status, dtype=np.int64), minlength=len(STATUS_NAMES))
+    total = max(int(counts.sum()), 1)
+    ax.legend(handles=[Patch(color=c, label=f"{name} {100 * k / total:.0f}%")
+                       for c, name, k in zip(STATUS_COLOURS, STATUS_NAMES, counts)],
+              loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
+
+
+def status_figure(path, hits: Hits, shape, faces, status, title: str | None = None) -> None:
+    """The status of every point (`jaxrefl.local.STATUS_NAMES`) over the pixels `hits` of a
+    view of `shape`, one discrete colour per status with a legend. Written to PNG `path`."""
+    aspect = shape[1] / shape[0]
+    fig = new_figure(figsize=(3.6 * min(aspect, 2.5) + 1.8, 3.8))
+    ax = fig.subplots()
+    _draw_status(fig, ax, _status_image(hits, shape, faces, status), status)
+    ax.set_axis_off()
+    ax.set_title(title or "status", fontsize=10)
+    fig.tight_layout()
+    _save_figure(path, fig)
 
 
 def _save_figure(path, fig) -> None:
@@ -188,17 +238,14 @@ def _cmap(name: str):
 def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = None) -> None:
     """The paper's Figures 10-11 for any result: (a) diffuse albedo pd as colour,
     (b) specular reflectance ps, (c) roughness in grey (largest = white), (d) status
-    (measured / interpolated / unresolved), each with its colour bar, over the
-    pixels `hits` `(H*W rays)` of a view of `shape` `(H, W)`. Written to PNG `path`."""
-    from matplotlib.colors import BoundaryNorm, ListedColormap
-
+    (measured / interpolated / unresolved / pooled, discrete colours with a legend), (a)-(c)
+    each with its colour bar, over the pixels `hits` `(H*W rays)` of a view of `shape` `(H, W)`.
+    Written to PNG `path`."""
     rough_name = "sigma" if est.model == "torrance-sparrow" else "alpha"
     pd = shade(hits, faces, est.pd, shape)
     ps = shade(hits, faces, est.ps, shape)
     rough = shade(hits, faces, est.roughness, shape)
-    # Status is categorical: take the nearest vertex of the hit face, not a blend.
-    nearest = faces[np.maximum(hits.face, 0), np.argmax(hits.barycentric, axis=1)]
-    status = np.where(hits.hit, np.asarray(est.status, dtype=np.float64)[nearest], np.nan).reshape(shape)
+    status = _status_image(hits, shape, faces, est.status)
     aspect = shape[1] / shape[0]
     fig = new_figure(figsize=(2 * 3.6 * min(aspect, 2.5) + 1.6, 2 * 3.6 + 0.8))
     axes = fig.subplots(2, 2)
@@ -214,13 +261,8 @@ def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = 
         im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=0.0, vmax=hi)
         fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=label)
         ax.set_title(name)
-    cm = ListedColormap(_STATUS_COLOURS).with_extremes(bad="white")
-    im = d.imshow(np.ma.masked_invalid(status), cmap=cm, norm=BoundaryNorm([-0.5, 0.5, 1.5, 2.5], 3))
-    bar = fig.colorbar(im, ax=d, fraction=0.046, pad=0.02, ticks=[0, 1, 2])
-    bar.ax.set_yticklabels(STATUS_NAMES)
-    counts = np.bincount(np.asarray(est.status, dtype=np.int64), minlength=3)
-    d.set_title("(d) status: " + ", ".join(f"{100 * k / max(counts.sum(), 1):.0f}% {s}"
-                                           for k, s in zip(counts, STATUS_NAMES)), fontsize=8)
+    _draw_status(fig, d, status, est.status)
+    d.set_title("(d) status")
     for ax in axes.ravel():
         ax.set_axis_off()
     if title:

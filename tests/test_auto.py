@@ -226,6 +226,10 @@ def test_ps_is_method_threes_wherever_it_runs_else_method_ones():
         np.testing.assert_array_equal(getattr(merged, k), np.where(half, 2.0, 1.0))
     np.testing.assert_array_equal(merged.specular_identifiable, half)
     np.testing.assert_array_equal(merged.status, np.where(block, 1, 0))
+    # pooled (code 3) is less certain than measured, more than interpolated (1) and unresolved (2)
+    for mine, theirs, want in ((3, 2, 2), (2, 3, 2), (0, 3, 3), (3, 0, 3), (3, 1, 1)):
+        merged = auto._merge(est(1.0, mine), est(2.0, theirs), block, half)
+        np.testing.assert_array_equal(merged.status, np.where(half, theirs, np.where(block, want, mine)))
 
 
 def test_target_is_an_error_the_user_accepts_and_zero_asks_for_the_best():

@@ -69,6 +69,9 @@ def test_local_batch_writes_one_result_per_scan(scan_dir, tmp_path):
                                   + ["summary.csv", "summary.md"])
     summary = json.loads((out / "s0_result.json").read_text())
     assert summary["status"] == "done" and summary["method"] == "local" and 0 < summary["coverage"] <= 1
+    assert summary["coverage"] <= summary["known"] <= 1 and "materials" in summary  # the shared prior
+    with open(out / "summary.csv", newline="") as fh:
+        assert float(next(csv.DictReader(fh))["known"]) == summary["known"]
     assert 0 <= summary["errors"]["pd"]["all"]["median"] < 0.1  # the bundle holds the truth
     assert statuses(out) == dict.fromkeys(NAMES, "done")
     assert "3 scans: 3 done, 0 skipped, 0 failed" in (out / "summary.md").read_text()

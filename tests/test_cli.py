@@ -141,6 +141,38 @@ def test_estimate_writes_result_and_summary(tmp_path):
     assert "alpha" in np.load(tmp_path / "w.npz").files
 
 
+def test_estimate_with_and_without_the_shared_prior(tmp_path):
+    """Default (shared prior) and `--no-prior` both run; the summaries count all four statuses,
+    the default reports its materials, and the result file keeps their labels."""
+    scan = tmp_path / "v.npz"
+    assert jaxrefl("synth", "V", "--out", scan, "--resolution", 16, "--lights", "14,24,25,34,35,45",
+                   "--noise", 0.01).returncode == 0
+    summaries = {}
+    for flag in ("--no-prior", "--prior"):
+        r = jaxrefl("estimate", scan, flag, "--out", tmp_path / "r.npz", "--json")
+        assert r.returncode == 0, r.stderr
+        summaries[flag] = s = json.loads(r.stdout)
+        assert list(s["status_counts"]) == ["measured", "interpolated", "unresolved", "pooled"]
+        assert sum(s["status_counts"].values()) == s["points"]
+        assert 0 < s["coverage"] <= s["known"] <= 1
+    gated, prior = summaries["--no-prior"], summaries["--prior"]
+    assert "materials" not in gated and gated["status_counts"]["pooled"] == 0
+    assert gated["known"] == gated["coverage"]
+    assert 1 <= prior["materials"] <= 6 and len(prior["material_lobes"]) == prior["materials"]
+    assert {"ps", "roughness", "std_ps", "points", "identifiable"} <= set(prior["material_lobes"][0])
+    assert prior["status_counts"]["interpolated"] == 0 and prior["status_counts"]["pooled"] > 0
+    with np.load(tmp_path / "r.npz") as z:
+        assert set(np.unique(z["material"])) <= set(range(prior["materials"]))
+        assert set(np.unique(z["status"])) <= {0, 2, 3}
+    r = jaxrefl("estimate", scan, "--materials", 1, "--out", tmp_path / "one.npz")
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.strip().splitlines()
+    assert "measured or pooled" in lines[0] and "pooled" in lines[0].split("(")[-1]
+    assert lines[1].startswith("prior: 1 material ") and len(lines) == 3 and "material 0:" in lines[2]
+    r = jaxrefl("estimate", scan, "--materials", 0, "--out", tmp_path / "never.npz")
+    assert_one_line_error(r, "materials")
+
+
 BAD_ESTIMATE_INPUTS = [
     ("radiance", lambda d: d.update(radiance=np.where(np.arange(d["radiance"].size).reshape(
         d["radiance"].shape) == 7, np.nan, d["radiance"]))),

@@ -11,12 +11,21 @@ from jaxrefl import relight as rl
 from jaxrefl import render
 from jaxrefl.export import export_ply
 from jaxrefl.io import save_scan
-from jaxrefl.local import Estimate
+from jaxrefl.local import STATUS_NAMES, Estimate
 from jaxrefl.raycast import RayCaster
 from jaxrefl.result import save_result
 
 from .helpers import grid_plane
 from .test_cli import assert_one_line_error, jaxrefl
+
+
+def test_status_colours_cover_every_status():
+    """The maps draw each of `jaxrefl.local.STATUS_NAMES` in its own discrete colour."""
+    assert render.STATUS_NAMES == STATUS_NAMES
+    assert len(set(render.STATUS_COLOURS)) == len(STATUS_NAMES)
+    cmap, norm = render.status_colormap()
+    colours = [cmap(norm(code)) for code in range(len(STATUS_NAMES))]
+    assert len(set(colours)) == len(STATUS_NAMES)
 
 
 @pytest.fixture(scope="module")
@@ -27,18 +36,19 @@ def scan_a():
 
 
 def _estimate(scan, rng=None, model="torrance-sparrow"):
-    """The scan's truth as an Estimate, optionally perturbed, with a mixed status."""
+    """The scan's truth as an Estimate, optionally perturbed, with every status and two
+    materials."""
     est = rl.truth_estimate(scan)
     n = scan.n_points
-    status = (np.arange(n) % 3).astype(np.int8)
+    status = (np.arange(n) % len(STATUS_NAMES)).astype(np.int8)
     pd, ps, rough = est.pd, est.ps, est.roughness
     if rng is not None:
         pd = np.clip(pd * (1 + 0.05 * rng.standard_normal(pd.shape)), 0, 1)
         ps = ps * (1 + 0.1 * rng.standard_normal(n)) ** 2
         rough = rough * np.exp(0.1 * rng.standard_normal(n))
     std = np.where(status[:, None] == 2, np.inf, 0.01 * np.ones((n, 3)))
-    return Estimate(pd, ps, rough, status, std, std[:, 0], std[:, 0], status == 0, status < 2, model,
-                    {"method": "test", "model": model})
+    return Estimate(pd, ps, rough, status, std, std[:, 0], std[:, 0], status == 0, status != 2, model,
+                    {"method": "test", "model": model}, material=(np.arange(n) // 7) % 2)
 
 
 @pytest.mark.parametrize("model", ["torrance-sparrow", "ward"])
@@ -120,7 +130,8 @@ def test_pictures_comparison_and_maps(scan_a, tmp_path):
     render.reflectance_figure(tmp_path / "maps.png", hits, shape, scan_a.faces, est, title="test")
     hits, shape = render.cylindrical_hits(caster, width=128)
     render.reflectance_figure(tmp_path / "maps_cyl.png", hits, shape, scan_a.faces, est)
-    for name in ("cmp.png", "maps.png", "maps_cyl.png"):
+    render.status_figure(tmp_path / "status.png", hits, shape, scan_a.faces, est.status)
+    for name in ("cmp.png", "maps.png", "maps_cyl.png", "status.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # A fitted camera sees the whole object (the first and last columns and rows are empty).
     far = rl.fit_camera(scan_a.vertices, scan_a.vertices.mean(0) + [0.0, 0.1, 50.0], width=160, height=120)
@@ -179,6 +190,7 @@ def test_export_ply_reopens_with_trimesh_and_plain_parsing(scan_a, tmp_path):
     np.testing.assert_array_equal(v["std_ps"], est.std_ps.astype(np.float32))  # inf where unknown
     assert np.isinf(v["std_sigma"][est.status == 2]).all()
     np.testing.assert_array_equal(v["pd_measured"], est.pd_measured)
+    np.testing.assert_array_equal(v["material"], est.material)
     srgb = np.where(est.pd <= 0.0031308, 12.92 * est.pd, 1.055 * est.pd ** (1 / 2.4) - 0.055)
     colours = np.stack([v["red"], v["green"], v["blue"]], -1).astype(float)
     assert np.abs(colours - srgb * 255).max() <= 0.5 + 1e-9
