@@ -829,7 +829,8 @@ def _posterior_lobes(scan, fit, observed_any, options):
     own = own & seen[materials.labels]
     rho_own = np.log(fit["roughness"])
     prior = prior_mod.lobe_prior(fit["ps"], fit["std_ps"] ** 2, rho_own, fit["std_ln_roughness"] ** 2, own,
-                                 materials.labels, lobes, scan.vertices, neighbours=options.prior_neighbours)
+                                 materials.labels, lobes, scan.vertices, neighbours=options.prior_neighbours,
+                                 fitted=observed_any & np.isfinite(fit["std_ps"]) & np.isfinite(fit["std_ln_roughness"]))
     # Prior variances in units of each row's residual scale (the row solver's weights).
     s2_safe = np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0)
     post = chunks.map_fit({"m_ps": np.where(prior.available, prior.mean_ps, 0.0),

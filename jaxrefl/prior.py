@@ -252,16 +252,27 @@ class LobePrior:
 
 
 def _robust_spread(deviation, own_var):
-    """Variance of `deviation` `(n,)` beyond the noise `own_var` `(n,)`: the squared scaled
-    median absolute deviation less the median noise variance; 0 unless the deviations'
-    robust scale in units of their own standard deviations exceeds 1 by two of its standard
-    errors (the scaled MAD's is about `1.16 / sqrt(n)`): a spread from a few points must be
-    significant to widen a prior, and a few wrong own fits must not (a moment would let them)."""
+    """Variance `t` of `deviation` `(n,)` beyond the noise `own_var` `(n,)`: the `t` at which
+    the deviations in units of `sqrt(own_var + t)` have a robust scale (scaled median
+    absolute deviation) of 1, a random-effects variance in which loose fits count little
+    and a few wrong ones cannot move it (a moment would let them). 0 unless the scale at
+    `t = 0` exceeds 1 by two of its standard errors (about `1.16 / sqrt(n)`): a spread from
+    a few points must be significant to widen a prior."""
     n = len(deviation)
-    scale = lambda x: 1.4826 * np.median(np.abs(x - np.median(x)))  # noqa: E731
-    if scale(deviation / np.sqrt(own_var)) <= 1.0 + 2.0 * 1.16 / np.sqrt(n):
+    if n < 2:
         return 0.0
-    return max(scale(deviation) ** 2 - float(np.median(own_var)), 0.0)
+
+    def scale(t):
+        z = deviation / np.sqrt(own_var + t)
+        return 1.4826 * np.median(np.abs(z - np.median(z)))
+
+    if scale(0.0) <= 1.0 + 2.0 * 1.16 / np.sqrt(n):
+        return 0.0
+    lo, hi = 0.0, float(np.max(deviation**2)) + 1e-300
+    for _ in range(60):  # the scale falls as t grows: bisection
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if scale(mid) > 1.0 else (lo, mid)
+    return hi
 
 
 def _smooth_means(values, var, own, positions, neighbours, anchor, anchor_var, at=None, min_distance=0.0):
@@ -316,20 +327,24 @@ def _distance_spread(value, var, mine, positions, neighbours, centre, anchor_var
 
 
 def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, positions,
-               neighbours: int = 16) -> LobePrior:
+               neighbours: int = 16, fitted=None) -> LobePrior:
     """Empirical-Bayes prior of every point's lobe.
 
     **Arguments:** each point's own fit `ps`, `var_ps`, `rho`, `var_rho` `(N,)` and `own`
     `(N,)` bool (its own samples pin its lobe); `labels` `(N,)`; `lobes` the materials'
-    joint fits; `positions` `(N, 3)`; `neighbours` measured material-mates in the local mean.
+    joint fits; `positions` `(N, 3)`; `neighbours` measured material-mates in the local mean;
+    `fitted` `(N,)` bool: points with an own fit at all (default: finite variances).
 
     Within each material the spread of the measured lobes about their leave-one-out local
     means beyond their own variance is the prior's width (`_robust_spread`); it is never
     taken below `median own variance * sqrt(2 / n)`, the resolution of a variance estimate
-    from `n` points.
+    from `n` points. A material with fewer own lobes than that takes its joint lobe, as wide
+    as the robust spread of all its members' own fits about it, however loose each is.
     """
     n = len(ps)
     k = len(lobes.ps)
+    if fitted is None:
+        fitted = np.isfinite(var_ps) & np.isfinite(var_rho)
     out = {key: np.zeros(n) for key in ("mean_ps", "var_ps", "mean_rho", "var_rho")}
     available = np.zeros(n, bool)
     spreads = np.full((2, k), np.inf)
@@ -356,7 +371,11 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
                 spread = _distance_spread(value, var_f, mine, positions, neighbours, centre, anchor_var, total,
                                           nearest, resolution)
             elif np.isfinite(anchor_var):
-                mean, mean_var, spread = np.full(n, anchor), np.full(n, anchor_var), 0.0
+                # Too few own lobes to map the field: the material's value, as wide as the
+                # spread of every member's own fit about it (however loose each is) demands.
+                mean, mean_var = np.full(n, anchor), np.full(n, anchor_var)
+                used = members & fitted
+                spread = _robust_spread(value[used] - anchor, np.maximum(var[used], _VAR_FLOOR) + anchor_var)
             else:  # a few own lobes and no material lobe: too little to say what the others are
                 mean, mean_var, spread = np.zeros(n), np.full(n, np.inf), np.inf
             spread = np.broadcast_to(spread, (n,))
