@@ -39,6 +39,7 @@ _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
 #: points is too uncertain to widen or narrow a prior); with fewer, the material's lobe.
 _MIN_SPREAD_POINTS = 8
 _RESTARTS = 4  # seedings of the mixture per K
+_SPREAD_SAMPLE = 2000  # measured points a distance-dependent spread is measured on
 
 
 @dataclass(frozen=True)
@@ -60,11 +61,12 @@ def _log_density(x, v, mu, tau2, log_w):
     return log_w[None] - 0.5 * terms.sum(-1)
 
 
-def _em(x, v, k, rng, iterations=200):
+def _em(x, v, k, rng, iterations=100):
     """EM for a k-component diagonal mixture with per-point observation variances. Returns
     (log likelihood, mu, tau2, log_w) or None when a component collapses."""
     n, dim = x.shape
     present = np.isfinite(v)
+    xx, vv = np.where(present, x, 0.0), np.where(present, v, 0.0)
     colour = x[:, :3]
     # k-means++ seeds on colour (always present), deterministic through `rng`.
     centres = [colour[rng.integers(n)]]
@@ -84,29 +86,24 @@ def _em(x, v, k, rng, iterations=200):
         if np.any(nk < max(2.0, 2 * dim)):
             return None
         log_w = np.log(nk / n)
-        for d in range(dim):
-            p = present[:, d]
-            for j in range(k):
-                r = resp[p, j]
-                if r.sum() <= 0:
-                    mu[j, d], tau2[j, d] = 0.0, 1.0
-                    continue
-                w = r / (tau2[j, d] + v[p, d])
-                mu[j, d] = np.sum(w * x[p, d]) / np.sum(w)
-                moment = np.sum(r * ((x[p, d] - mu[j, d]) ** 2 - v[p, d])) / r.sum()
-                tau2[j, d] = max(moment, _VAR_FLOOR)
+        r = resp[:, :, None] * present[:, None, :]  # (n, k, D): responsibility where observed
+        w = r / (tau2[None] + vv[:, None, :])
+        sw, sr = w.sum(0), r.sum(0)
+        mu = np.where(sw > 0, np.sum(w * xx[:, None, :], 0) / np.where(sw > 0, sw, 1.0), 0.0)
+        moment = np.sum(r * ((xx[:, None, :] - mu[None]) ** 2 - vv[:, None, :]), 0) / np.where(sr > 0, sr, 1.0)
+        tau2 = np.where(sr > 0, np.maximum(moment, _VAR_FLOOR), 1.0)
         logp = _log_density(x, v, mu, tau2, log_w)
         top = logp.max(1, keepdims=True)
         total = top[:, 0] + np.log(np.exp(logp - top).sum(1))
         resp = np.exp(logp - total[:, None])
         ll = float(total.sum())
-        if ll - previous < 1e-7 * abs(ll) + 1e-9:
+        if ll - previous < 1e-6 * abs(ll) + 1e-9:
             break
         previous = ll
     return ll, mu, tau2, log_w
 
 
-def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 4000,
+def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 2000,
                   seed: int = 0) -> Materials:
     """Cluster points into materials, K chosen by BIC.
 
@@ -141,6 +138,8 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
         bic[k] = -2.0 * ll + (k - 1 + 2 * k * dim) * np.log(n_fit)
         if best is None or bic[k] < bic[best[0]]:
             best = (k, res)
+        elif k >= best[0] + 2:  # two more components that did not pay: more will not
+            break
     if best is None:
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
     k, (_, mu, tau2, log_w) = best
@@ -308,6 +307,8 @@ def _distance_spread(value, var, mine, positions, neighbours, centre, anchor_var
     the spread there; non-decreasing in distance, interpolated, at most `total`."""
     n = len(value)
     at = np.flatnonzero(mine)
+    if len(at) > _SPREAD_SAMPLE:  # a spread needs far fewer points than a dense scan has
+        at = at[np.linspace(0, len(at) - 1, _SPREAD_SAMPLE).astype(np.int64)]
     finite = nearest[np.isfinite(nearest)]
     levels = np.unique(np.quantile(finite, [0.0, 0.25, 0.5, 0.75, 0.95])) if len(finite) else np.zeros(1)
     centres, spreads = [], []
@@ -365,9 +366,11 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
                 # material's value: the local mean follows the measured field where it is dense.
                 total = _robust_spread(own_values - centre, own_var)
                 var_f = np.maximum(var, _VAR_FLOOR)
-                mean, mean_var, nearest = _smooth_means(value, var_f + total + resolution, mine, positions,
-                                                        neighbours, np.full(n, centre),
-                                                        anchor_var + total + resolution)
+                mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
+                at = np.flatnonzero(members)
+                mean[at], mean_var[at], nearest[at] = _smooth_means(
+                    value, var_f + total + resolution, mine, positions, neighbours, np.full(n, centre),
+                    anchor_var + total + resolution, at)
                 spread = _distance_spread(value, var_f, mine, positions, neighbours, centre, anchor_var, total,
                                           nearest, resolution)
             elif np.isfinite(anchor_var):
