@@ -344,9 +344,13 @@ def test_region_estimate_makes_only_its_configurations_and_keeps_method_one_else
     err = lambda e: np.median((np.abs(e.pd - scan.true_pd) / scan.true_pd).mean(1)[region])  # noqa: E731
     assert err(part) < 1.25 * err(whole) + 0.005, (err(part), err(whole))
     far = scan.vertices[:, 0] < np.percentile(scan.vertices[:, 0], 40)
-    # Method I's result away from the region, up to the shared prior: its material lobes are
-    # fitted from every point, the region's residual samples included.
-    np.testing.assert_allclose(part.pd[far], local.pd[far], rtol=2e-2)
+    # Method I's result away from the region, up to the shared prior: its materials and their
+    # lobes are fitted from every point, the region's residual samples included, so a few far
+    # points (those whose lobe is pooled or copied) may take another lobe; as accurate overall.
+    rel_far = (np.abs(part.pd - local.pd) / np.maximum(local.pd, 1e-3)).max(1)[far]
+    assert np.median(rel_far) < 2e-3, np.median(rel_far)
+    err_far = lambda e: np.median((np.abs(e.pd - scan.true_pd) / scan.true_pd).mean(1)[far])  # noqa: E731
+    assert err_far(part) <= 1.1 * err_far(local) + 0.002, (err_far(part), err_far(local))
     for k in ("pd", "ps", "roughness"):
         assert np.all(np.isfinite(getattr(part, k)))
     with pytest.raises(ValueError, match="points"):
