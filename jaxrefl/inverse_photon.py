@@ -393,7 +393,8 @@ def _identifiable(ps, var_ps, var_rho, chi2, rows, min_snr, min_fit_p):
     # The noise model of the weights may be off by a factor on real data: chi^2 is
     # measured against the median reduced chi^2 of the lobe fits (when above 1).
     red = jnp.where(rows["lobe"] & jnp.isfinite(chi2), chi2 / dof, jnp.nan)
-    typical = jnp.maximum(1.0, jnp.nan_to_num(jnp.nanmedian(red), nan=1.0))
+    # (no lobe fit at all, e.g. no point with lobe evidence: nothing to scale by)
+    typical = jnp.maximum(1.0, jnp.nan_to_num(jnp.nanmedian(red), nan=1.0)) if red.size else 1.0
     fits = jax.scipy.special.gammaincc(0.5 * dof, 0.5 * jnp.maximum(chi2, 0.0) / typical) >= min_fit_p
     return rows["lobe"] & jnp.isfinite(sd_ps) & jnp.isfinite(sd_rho) & (ps > min_snr * sd_ps) & (sd_rho < 1.0) \
         & fits

@@ -2,6 +2,7 @@
 
 import json
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -134,3 +135,13 @@ def test_oblique_glossy_fold():
            "III": _rel(estimate_photon(scan, PhotonOptions(photons=2_000_000, iterations=50)), scan, near).mean()}
     assert err["III"] <= 0.035, err
     assert 2 * err["III"] <= min(err["I"], err["II"]), err
+
+
+def test_identifiable_without_any_lobe_fit():
+    """No point with lobe evidence (an empty set of lobe fits): no lobe is identifiable, and
+    no IndexError from the median of an empty set."""
+    from jaxrefl.inverse_photon import _identifiable
+
+    empty = jnp.zeros(0)
+    out = _identifiable(empty, empty, empty, empty, {"n_b": jnp.zeros(0, int), "lobe": jnp.zeros(0, bool)}, 3.0, 0.0)
+    assert out.shape == (0,)
