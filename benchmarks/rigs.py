@@ -25,7 +25,7 @@ Per cell (direct light, Embree shadows, the zoo's sensor):
    identifiable or not, no fill of any kind.
 5. `reference` (best single lobe per material): for each TRUE material label
    (`info["labels"]`) one (ps, roughness) fitted jointly to all its points' fit-light
-   samples (`prior.material_lobes` on `fit_rows(...)["chunks"].reduced`, inverse residual
+   samples (`prior.material_lobes` on `fit_rows(...)["chunks"].material_sums`, inverse residual
    scales `1 / noise_scale`, grid `ln brdf.ROUGHNESS_GRID`), then every point's pd re-fitted
    with that lobe fixed (`local._refit_diffuse`); points without any fit-light sample take pd
    from their observed neighbours (`local.fill_unobserved_pd`), as every variant does.
@@ -247,8 +247,8 @@ def plain_and_reference(fit_scan, rows, labels, n_materials, model, caster, test
     s2 = np.asarray(fit["noise_scale"], float)
     ok = np.isfinite(s2) & (s2 > 0) & observed_any
     inv_s2 = np.where(ok, 1.0 / np.where(ok, s2, 1.0), 0.0)
-    lobes = prior_mod.material_lobes(fit["chunks"].reduced, np.asarray(labels, np.int64), int(n_materials), inv_s2,
-                                     np.log(brdf.ROUGHNESS_GRID))
+    lobes = prior_mod.material_lobes(fit["chunks"].material_sums, np.asarray(labels, np.int64), int(n_materials),
+                                     inv_s2, np.log(brdf.ROUGHNESS_GRID))
     # A material the joint fit cannot resolve (no rows, flat chi^2) has no lobe.
     lobe_ps = np.where(np.isfinite(lobes.ps) & np.isfinite(lobes.rho), lobes.ps, 0.0)
     lobe_rho = np.where(np.isfinite(lobes.rho), lobes.rho, np.log(0.1))

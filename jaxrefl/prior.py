@@ -27,18 +27,25 @@ names which of the two dominated.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LobePrior", "lobe_prior",
-           "status_from_posterior"]
+           "status_from_posterior", "prior_conflict"]
 
 _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
 #: Fewest own lobes from which a material's spread is estimated (a variance from fewer
 #: points is too uncertain to widen or narrow a prior); with fewer, the material's lobe.
 _MIN_SPREAD_POINTS = 8
 _RESTARTS = 4  # seedings of the mixture per K
+#: EM stops when the log likelihood gains less than this share of itself: BIC compares
+#: likelihoods that differ by whole units, far above it.
+_EM_TOL = 1e-6
 _SPREAD_SAMPLE = 2000  # measured points a distance-dependent spread is measured on
 
 
@@ -51,56 +58,103 @@ class Materials:
     bic: dict
 
 
-def _log_density(x, v, mu, tau2, log_w):
+def _log_density(x, v, mu, tau2, log_w, xp=np):
     """Per point and component log density `(n, K)` of the diagonal mixture; dimensions with
-    infinite observation variance `v` are marginalised out."""
-    present = np.isfinite(v)
-    var = tau2[None] + np.where(present, v, 0.0)[:, None]  # (n, K, D)
-    d2 = (np.where(present, x, 0.0)[:, None] - mu[None]) ** 2 / var
-    terms = np.where(present[:, None], d2 + np.log(2 * np.pi * var), 0.0)
+    infinite observation variance `v` are marginalised out (`xp`: numpy or jax.numpy)."""
+    present = xp.isfinite(v)
+    var = tau2[None] + xp.where(present, v, 0.0)[:, None]  # (n, K, D)
+    d2 = (xp.where(present, x, 0.0)[:, None] - mu[None]) ** 2 / var
+    terms = xp.where(present[:, None], d2 + xp.log(2 * np.pi * var), 0.0)
     return log_w[None] - 0.5 * terms.sum(-1)
 
 
-def _em(x, v, k, rng, iterations=100):
-    """EM for a k-component diagonal mixture with per-point observation variances. Returns
-    (log likelihood, mu, tau2, log_w) or None when a component collapses."""
-    n, dim = x.shape
-    present = np.isfinite(v)
-    xx, vv = np.where(present, x, 0.0), np.where(present, v, 0.0)
-    colour = x[:, :3]
-    # k-means++ seeds on colour (always present), deterministic through `rng`.
+def _lloyd_seeds(colour, k, rng):
+    """Hard initial assignment `(n,)` to `k` clusters: k-means++ seeds on colour (always
+    present), deterministic through `rng`, moved by Lloyd's iterations to the clusters' middles."""
+    n = len(colour)
     centres = [colour[rng.integers(n)]]
     for _ in range(1, k):
         d2 = np.min(((colour[:, None] - np.array(centres)[None]) ** 2).sum(-1), 1)
         centres.append(colour[rng.choice(n, p=d2 / d2.sum())] if d2.sum() > 0 else colour[rng.integers(n)])
     centres = np.array(centres)
-    for _ in range(10):  # Lloyd's iterations on colour: the seeds move to the clusters' middles
+    for _ in range(10):
         nearest = np.argmin(((colour[:, None] - centres[None]) ** 2).sum(-1), 1)
         centres = np.array([colour[nearest == j].mean(0) if np.any(nearest == j) else centres[j] for j in range(k)])
-    resp = np.zeros((n, k))
-    resp[np.arange(n), np.argmin(((colour[:, None] - centres[None]) ** 2).sum(-1), 1)] = 1.0
-    mu, tau2, log_w = np.zeros((k, dim)), np.ones((k, dim)), np.full(k, -np.log(k))
-    previous = -np.inf
-    for _ in range(iterations):
-        nk = resp.sum(0)
-        if np.any(nk < max(2.0, 2 * dim)):
-            return None
-        log_w = np.log(nk / n)
-        r = resp[:, :, None] * present[:, None, :]  # (n, k, D): responsibility where observed
-        w = r / (tau2[None] + vv[:, None, :])
-        sw, sr = w.sum(0), r.sum(0)
-        mu = np.where(sw > 0, np.sum(w * xx[:, None, :], 0) / np.where(sw > 0, sw, 1.0), 0.0)
-        moment = np.sum(r * ((xx[:, None, :] - mu[None]) ** 2 - vv[:, None, :]), 0) / np.where(sr > 0, sr, 1.0)
-        tau2 = np.where(sr > 0, np.maximum(moment, _VAR_FLOOR), 1.0)
-        logp = _log_density(x, v, mu, tau2, log_w)
-        top = logp.max(1, keepdims=True)
-        total = top[:, 0] + np.log(np.exp(logp - top).sum(1))
-        resp = np.exp(logp - total[:, None])
-        ll = float(total.sum())
-        if ll - previous < 1e-6 * abs(ll) + 1e-9:
-            break
-        previous = ll
-    return ll, mu, tau2, log_w
+    return np.argmin(((colour[:, None] - centres[None]) ** 2).sum(-1), 1)
+
+
+@partial(jax.jit, static_argnames=("iterations",))
+def _em_batch(x, v, weight, resp, active, iterations=100):
+    """EM for diagonal mixtures with per-point observation variances, one per batch row.
+
+    **Arguments:** `x`, `v` `(n, D)` (v inf: missing); `weight` `(n,)` 1 for a point, 0 for
+    padding; `resp` `(B, n, K)` initial responsibilities; `active` `(B, K)` bool, the
+    components each row uses (a K-component fit is a row with the first K active).
+
+    **Returns:** per row the log likelihood `(B,)`, `mu`, `tau2` `(B, K, D)`, `log_w`
+    `(B, K)` and `collapsed` `(B,)` (a component fell under `max(2, 2 D)` points).
+    """
+    dim = x.shape[1]
+    n = weight.sum()
+    present = jnp.isfinite(v) & (weight[:, None] > 0)
+    xx, vv = jnp.where(present, x, 0.0), jnp.where(present, v, 0.0)
+    tol = max(_EM_TOL, 10 * float(jnp.finfo(x.dtype).eps))
+
+    def one(resp0, act):
+        k = resp0.shape[1]
+
+        def step(state):
+            resp, _, _, tau2, ll, _, it, collapsed = state
+            resp = resp * weight[:, None]
+            nk = resp.sum(0)
+            collapsed = collapsed | jnp.any(act & (nk < max(2.0, 2 * dim)))
+            log_w = jnp.where(act, jnp.log(jnp.maximum(nk, 1e-30) / n), -jnp.inf)
+            r = resp[:, :, None] * present[:, None, :]
+            w = r / (tau2[None] + vv[:, None, :])
+            sw, sr = w.sum(0), r.sum(0)
+            mu = jnp.where(sw > 0, jnp.sum(w * xx[:, None, :], 0) / jnp.where(sw > 0, sw, 1.0), 0.0)
+            moment = jnp.sum(r * ((xx[:, None, :] - mu[None]) ** 2 - vv[:, None, :]), 0) / jnp.where(sr > 0, sr, 1.0)
+            tau2 = jnp.where(sr > 0, jnp.maximum(moment, _VAR_FLOOR), 1.0)
+            logp = _log_density(x, jnp.where(present, v, jnp.inf), mu, tau2, log_w, jnp)
+            total = jax.nn.logsumexp(logp, axis=1)
+            return (jnp.exp(logp - total[:, None]), mu, log_w, tau2, jnp.sum(total * weight), ll, it + 1, collapsed)
+
+        def going(state):
+            ll, previous, it, collapsed = state[4:]
+            return (it < iterations) & ~collapsed & ((it < 1) | (ll - previous >= tol * jnp.abs(ll) + 1e-9))
+
+        dtype = x.dtype
+        init = (resp0, jnp.zeros((k, dim), dtype), jnp.full(k, -jnp.log(k), dtype), jnp.ones((k, dim), dtype),
+                jnp.asarray(-jnp.inf, dtype), jnp.asarray(-jnp.inf, dtype), 0, jnp.asarray(False))
+        _, mu, log_w, tau2, ll, _, _, collapsed = jax.lax.while_loop(going, step, init)
+        return ll, mu, tau2, log_w, collapsed
+
+    return jax.vmap(one)(resp, active)
+
+
+def _em_fits(x, v, ks, seed):
+    """The best non-collapsed mixture of each K in `ks` over `_RESTARTS` seedings (one for
+    K = 1), all in one batched EM: `{k: (log likelihood, mu, tau2, log_w)}`."""
+    n, k_pad = len(x), max(ks)
+    n_pad = -(-n // 250) * 250  # one compilation for scans of similar size
+    rows = [(k, r) for k in ks for r in range(1 if k == 1 else _RESTARTS)]
+    resp = np.zeros((len(rows), n_pad, k_pad))
+    for b, (k, r) in enumerate(rows):
+        resp[b, np.arange(n), _lloyd_seeds(x[:, :3], k, np.random.default_rng([seed, k, r]))] = 1.0
+    active = np.arange(k_pad)[None] < np.array([k for k, _ in rows])[:, None]
+    dtype = jnp.float32  # clustering needs no more; twice as fast as float64
+    pad = [(0, n_pad - n), (0, 0)]
+    out = _em_batch(jnp.asarray(np.pad(x, pad), dtype), jnp.asarray(np.pad(v, pad, constant_values=np.inf), dtype),
+                    jnp.asarray(np.arange(n_pad) < n, dtype), jnp.asarray(resp, dtype), jnp.asarray(active))
+    ll, mu, tau2, log_w = (np.asarray(a, np.float64) for a in out[:4])
+    ok = ~np.asarray(out[4]) & np.isfinite(ll)
+    fits = {}
+    for k in ks:
+        cand = [b for b, (kb, _) in enumerate(rows) if kb == k and ok[b]]
+        if cand:
+            b = max(cand, key=lambda i: ll[i])
+            fits[k] = (ll[b], mu[b, :k], tau2[b, :k], log_w[b, :k])
+    return fits
 
 
 def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 2000,
@@ -125,21 +179,23 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
     fit_idx = np.sort(rng.choice(idx, size=min(sample, len(idx)), replace=False))
     xs, vs = x[fit_idx], v[fit_idx]
     n_fit, dim = xs.shape
-    best, bic = None, {}
-    for k in range(1, k_max + 1):
-        # A few seedings per K: k-means++ can start two components in one material, which
-        # then collapse; the best likelihood of those that do not is kept.
-        tries = [_em(xs, vs, k, np.random.default_rng([seed, k, r])) for r in range(_RESTARTS)]
-        tries = [t for t in tries if t is not None]
-        if not tries:
-            continue
-        res = max(tries, key=lambda t: t[0])
-        ll = res[0]
-        bic[k] = -2.0 * ll + (k - 1 + 2 * k * dim) * np.log(n_fit)
-        if best is None or bic[k] < bic[best[0]]:
-            best = (k, res)
-        elif k >= best[0] + 2:  # two more components that did not pay: more will not
-            break
+    # A few seedings per K: k-means++ can start two components in one material, which then
+    # collapse; the best likelihood of those that do not is kept. K is searched three at a
+    # time and the search stops once two more components than the best did not pay.
+    best, bic, k_next, done = None, {}, 1, False
+    while k_next <= k_max and not done:
+        ks = list(range(k_next, min(k_max, k_next + 2) + 1))
+        fits = _em_fits(xs, vs, ks, seed)
+        for k in ks:
+            if k not in fits:
+                continue
+            bic[k] = -2.0 * fits[k][0] + (k - 1 + 2 * k * dim) * np.log(n_fit)
+            if best is None or bic[k] < bic[best[0]]:
+                best = (k, fits[k])
+            elif k >= best[0] + 2:  # two more components that did not pay: more will not
+                done = True
+                break
+        k_next = ks[-1] + 1
     if best is None:
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
     k, (_, mu, tau2, log_w) = best
@@ -165,17 +221,6 @@ class MaterialLobes:
     identifiable: np.ndarray
 
 
-def _material_sums(reduced, labels, k, inv_s2):
-    """Per material chi^2 coefficients `(G, K)` each: `C`, `A`, `B` of
-    `chi2(ps) = C - 2 ps B + ps^2 A` from the per-row reduced sums `(G, 3, N)`."""
-    g = reduced.shape[0]
-    out = np.zeros((3, g, k))
-    for q in range(3):
-        for i in range(g):
-            out[q, i] = np.bincount(labels, weights=reduced[i, q] * inv_s2, minlength=k)
-    return out
-
-
 def _profile(c, a, b):
     """chi^2 at the best ps >= 0 and that ps, elementwise."""
     a_safe = np.where(a > 0, a, 1.0)
@@ -183,35 +228,33 @@ def _profile(c, a, b):
     return c - 2.0 * ps * b + ps * ps * a, ps
 
 
-def material_lobes(reduced_at, labels, k, inv_s2, rho_grid, min_snr: float = 3.0,
+def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 3.0,
                    peak_samples=None) -> MaterialLobes:
     """Joint fit of one lobe per material over all its points' samples.
 
-    **Arguments:** `reduced_at(rho)` with `rho` `(G, N)` ln roughness per grid value and
-    row returns `(G, 3, N)`: per row the weighted squared-residual coefficients
-    `(c0, a, b)` of `cost(ps) = c0 - 2 ps b + ps^2 a` with the row's pd profiled out;
-    `labels` `(N,)`; `k`; `inv_s2` `(N,)` 1 / residual variance scale (0 leaves a row out);
-    `rho_grid` `(G,)` ln roughness values to search; `peak_samples` `(N,)` int: each row's
-    samples near a specular peak (`classify.T_SPEC`). A material whose rows hold fewer than
-    two is not identifiable, whatever its fit: a lobe no sample saw near its peak is a
-    smooth trend over its flank, which light the model leaves out (interreflection)
-    imitates.
+    **Arguments:** `material_sums(rho, labels, k, weights)` with `rho` `(G, k)` ln roughness
+    per grid value and material returns `(G, 3, k)`: per material the `weights`-weighted sum
+    over its rows of the squared-residual coefficients `(c0, a, b)` of
+    `cost(ps) = c0 - 2 ps b + ps^2 a`, each row's pd profiled out
+    (`local.ChunkedRows.material_sums`); `labels` `(N,)`; `k`; `inv_s2` `(N,)` 1 / residual
+    variance scale (0 leaves a row out); `rho_grid` `(G,)` ln roughness values to search;
+    `peak_samples` `(N,)` int: each row's samples near a specular peak (`classify.T_SPEC`).
+    A material whose rows hold fewer than two is not identifiable, whatever its fit: a lobe
+    no sample saw near its peak is a smooth trend over its flank, which light the model
+    leaves out (interreflection) imitates.
 
     **Returns:** `MaterialLobes`. The best grid value per material is refined on a finer
     grid around it and by a parabola, whose curvature gives `sd_rho`; `sd_ps` from the
     chi^2 curvature in ps at that roughness.
     """
-    n = len(labels)
     grid = np.asarray(rho_grid, np.float64)
-    coarse = reduced_at(np.broadcast_to(grid[:, None], (len(grid), n)))
-    c, a, b = _material_sums(coarse, labels, k, inv_s2)
+    c, a, b = np.moveaxis(material_sums(np.broadcast_to(grid[:, None], (len(grid), k)), labels, k, inv_s2), 1, 0)
     chi2, _ = _profile(c, a, b)
     best = np.argmin(np.where(np.isfinite(chi2), chi2, np.inf), axis=0)  # (K,)
     step = float(np.mean(np.diff(grid)))
     offsets = np.linspace(-step, step, 9)
     centre = grid[best]
-    fine = reduced_at(centre[labels][None] + offsets[:, None])
-    c, a, b = _material_sums(fine, labels, k, inv_s2)
+    c, a, b = np.moveaxis(material_sums(centre[None] + offsets[:, None], labels, k, inv_s2), 1, 0)
     chi2, ps_g = _profile(c, a, b)
     j = np.clip(np.argmin(chi2, axis=0), 1, len(offsets) - 2)
     cols = np.arange(k)
@@ -221,8 +264,7 @@ def material_lobes(reduced_at, labels, k, inv_s2, rho_grid, min_snr: float = 3.0
     shift = np.where(curv > 0, -0.5 * (y2 - y0) / (h * np.where(curv > 0, curv, 1.0)), 0.0)
     shift = np.clip(shift, -h, h)
     rho = centre + offsets[j] + shift
-    at = reduced_at(rho[labels][None])
-    c, a, b = _material_sums(at, labels, k, inv_s2)
+    c, a, b = np.moveaxis(material_sums(rho[None], labels, k, inv_s2), 1, 0)
     _, ps = _profile(c[0], a[0], b[0])
     sd_ps = np.where(a[0] > 0, 1.0 / np.sqrt(np.where(a[0] > 0, a[0], 1.0)), np.inf)
     # chi2 = min + (curv / 2) d^2, so -ln L = chi2 / 2 has curvature curv / 2: var = 2 / curv.
@@ -267,60 +309,66 @@ def _robust_spread(deviation, own_var):
 
     if scale(0.0) <= 1.0 + 2.0 * 1.16 / np.sqrt(n):
         return 0.0
-    lo, hi = 0.0, float(np.max(deviation**2)) + 1e-300
-    for _ in range(60):  # the scale falls as t grows: bisection
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if scale(mid) > 1.0 else (lo, mid)
-    return hi
+    hi = float(np.max(deviation**2)) + 1e-300
+    if scale(hi) > 1.0:  # the deviations' own size bounds the spread
+        return hi
+    # The scale falls as t grows (a step function of t: Brent's method brackets the step).
+    return float(brentq(lambda t: scale(t) - 1.0, 0.0, hi, xtol=1e-12 * hi, rtol=1e-10))
 
 
-def _smooth_means(values, var, own, positions, neighbours, anchor, anchor_var, at=None, min_distance=0.0):
-    """Precision-weighted mean of the `neighbours` nearest own-measured values, self left out
-    and none closer than `min_distance`, with `anchor` `(N,)` (variance `anchor_var`) as one
-    more observation; at the points `at` (indices; default all). Returns `(mean,
-    var_of_mean, nearest)`, each `(len(at),)`: `nearest` the distance to the closest
-    neighbour used."""
-    n = len(values)
-    at = np.arange(n) if at is None else np.asarray(at)
-    idx = np.flatnonzero(own)
-    anchor_var = np.broadcast_to(anchor_var, (n,))
-    if len(idx) == 0:
-        return anchor[at].copy(), anchor_var[at].copy(), np.full(len(at), np.inf)
-    kk = min((4 if min_distance > 0 else 1) * neighbours + 1, len(idx))
-    dist, j = cKDTree(positions[idx]).query(positions[at], k=kk)
-    dist, nbr = np.asarray(dist).reshape(len(at), kk), idx[np.asarray(j).reshape(len(at), kk)]
+def _neighbours(tree, own_idx, positions, at, k):
+    """The `k` nearest own-measured points of each point `at` (indices `(m,)`): distances and
+    indices `(m, k)`, nearest first (`tree` holds `positions[own_idx]`)."""
+    kk = min(k, len(own_idx))
+    dist, j = tree.query(positions[at], k=kk, workers=-1)
+    return np.asarray(dist).reshape(len(at), kk), own_idx[np.asarray(j).reshape(len(at), kk)]
+
+
+def _usable(at, dist, nbr, neighbours, min_distance=0.0):
+    """`(m, k)` bool: the first `neighbours` of each point's neighbours, itself left out and
+    none closer than `min_distance`."""
     usable = (nbr != at[:, None]) & (dist >= min_distance)
-    usable &= np.cumsum(usable, axis=1) <= neighbours
+    return usable & (np.cumsum(usable, axis=1) <= neighbours)
+
+
+def _smooth_means(values, var, nbr, dist, usable, anchor, anchor_var):
+    """Precision-weighted mean of each point's `usable` neighbours' `values` (`nbr`, `dist`,
+    `usable` `(m, k)`, from `_neighbours` and `_usable`; `var` `(N,)` their variances), with
+    `anchor` (variance `anchor_var`) as one more observation. Returns `(mean, var_of_mean,
+    nearest)`, each `(m,)`: `nearest` the distance to the closest neighbour used."""
     w = np.where(usable, 1.0 / var[nbr], 0.0)
-    w0 = 1.0 / anchor_var[at]
+    w0 = 1.0 / anchor_var
     total = w.sum(1) + w0
-    mean = (np.sum(w * values[nbr], 1) + w0 * anchor[at]) / total
-    nearest = np.min(np.where(usable, dist, np.inf), axis=1)
+    mean = (np.sum(w * values[nbr], 1) + w0 * anchor) / total
+    nearest = np.min(np.where(usable, dist, np.inf), axis=1, initial=np.inf)
     return mean, 1.0 / total, nearest
 
 
-def _distance_spread(value, var, mine, positions, neighbours, centre, anchor_var, total, nearest, resolution):
-    """Spread `(N,)` of each point's value about its local mean as it grows with `nearest`
-    `(N,)`, the distance to the closest measured lobe its mean rests on. At quantiles of
-    those distances each measured point's value is predicted from measured neighbours no
-    closer than that distance, and the robust spread of the misses (beyond their noise) is
-    the spread there; non-decreasing in distance, interpolated, at most `total`."""
-    n = len(value)
-    at = np.flatnonzero(mine)
-    if len(at) > _SPREAD_SAMPLE:  # a spread needs far fewer points than a dense scan has
-        at = at[np.linspace(0, len(at) - 1, _SPREAD_SAMPLE).astype(np.int64)]
+def _distance_levels(nearest):
+    """Distances at which a spread is measured: quantiles of the distances `nearest` from each
+    point to the closest measured lobe its mean rests on."""
     finite = nearest[np.isfinite(nearest)]
-    levels = np.unique(np.quantile(finite, [0.0, 0.25, 0.5, 0.75, 0.95])) if len(finite) else np.zeros(1)
+    return np.unique(np.quantile(finite, [0.0, 0.25, 0.5, 0.75, 0.95])) if len(finite) else np.zeros(1)
+
+
+def _distance_spread(value, var, sample, nbr, dist, levels, neighbours, centre, anchor_var, total, nearest,
+                     resolution):
+    """Spread `(N,)` of each point's value about its local mean as it grows with `nearest`
+    `(N,)`, the distance to the closest measured lobe its mean rests on. At each of `levels`
+    each measured point of `sample` (with its neighbours `nbr`, `dist` `(m, k)`) is predicted
+    from measured neighbours no closer than that distance, and the robust spread of the
+    misses (beyond their noise) is the spread there; non-decreasing in distance,
+    interpolated, at most `total`."""
     centres, spreads = [], []
     for level in levels:
-        mean, mean_var, used = _smooth_means(value, var + total, mine, positions, neighbours, np.full(n, centre),
-                                             anchor_var + total, at, level)
+        usable = _usable(sample, dist, nbr, neighbours, level)
+        mean, mean_var, used = _smooth_means(value, var + total, nbr, dist, usable, centre, anchor_var + total)
         ok = np.isfinite(used)
         if ok.sum() >= _MIN_SPREAD_POINTS:
             centres.append(float(np.median(used[ok])))
-            spreads.append(_robust_spread((value[at] - mean)[ok], (var[at] + mean_var)[ok]))
+            spreads.append(_robust_spread((value[sample] - mean)[ok], (var[sample] + mean_var)[ok]))
     if not centres:
-        return np.full(n, total + resolution)
+        return np.full(len(nearest), total + resolution)
     order = np.argsort(centres)
     centres = np.asarray(centres)[order]
     spreads = np.maximum.accumulate(np.minimum(np.asarray(spreads)[order], total))
@@ -355,6 +403,17 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
         if not (lobes.identifiable[m] or mine.any()):
             continue
         available[members] = True
+        at = np.flatnonzero(members)
+        if mine.sum() >= _MIN_SPREAD_POINTS:
+            # Who each point's neighbours are depends on where the measured lobes are, not on
+            # their values: one search serves ps and rho, the means and the spreads.
+            own_idx = np.flatnonzero(mine)
+            tree = cKDTree(positions[own_idx])
+            dist, nbr = _neighbours(tree, own_idx, positions, at, neighbours + 1)
+            usable = _usable(at, dist, nbr, neighbours)
+            sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
+                own_idx[np.linspace(0, len(own_idx) - 1, _SPREAD_SAMPLE).astype(np.int64)]
+            s_dist, s_nbr = _neighbours(tree, own_idx, positions, sample, 4 * neighbours + 1)
         for d, (value, var, anchor, anchor_sd) in enumerate(
                 ((ps, var_ps, lobes.ps[m], lobes.sd_ps[m]), (rho, var_rho, lobes.rho[m], lobes.sd_rho[m]))):
             anchor_var = anchor_sd**2 if np.isfinite(anchor_sd) else np.inf
@@ -367,12 +426,10 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
                 total = _robust_spread(own_values - centre, own_var)
                 var_f = np.maximum(var, _VAR_FLOOR)
                 mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
-                at = np.flatnonzero(members)
                 mean[at], mean_var[at], nearest[at] = _smooth_means(
-                    value, var_f + total + resolution, mine, positions, neighbours, np.full(n, centre),
-                    anchor_var + total + resolution, at)
-                spread = _distance_spread(value, var_f, mine, positions, neighbours, centre, anchor_var, total,
-                                          nearest, resolution)
+                    value, var_f + total + resolution, nbr, dist, usable, centre, anchor_var + total + resolution)
+                spread = _distance_spread(value, var_f, sample, s_nbr, s_dist, _distance_levels(nearest[at]),
+                                          neighbours, centre, anchor_var, total, nearest, resolution)
             elif np.isfinite(anchor_var):
                 # Too few own lobes to map the field: the material's value, as wide as the
                 # spread of every member's own fit about it (however loose each is) demands.
@@ -402,3 +459,21 @@ def status_from_posterior(own, var_own_ps, var_own_rho, prior: LobePrior):
     dominates = (var_own_ps <= prior.var_ps) & (var_own_rho <= prior.var_rho)
     measured = own & (dominates | ~prior.available)
     return measured, ~measured & prior.available
+
+
+#: Family-wise false-alarm rate of the prior-data conflict test over all points.
+_CONFLICT_ALPHA = 0.05
+
+
+def prior_conflict(cost_posterior, cost_own, noise_scale, tested):
+    """`(N,)` bool: among the `tested` points `(N,)` bool, those whose data's chi^2 at the
+    posterior mode exceeds that at their own best fit (costs `(N,)` weighted squared
+    residuals, `noise_scale` `(N,)` their variance scale) by more than chance allows: the
+    excess is chi^2 with 2 degrees of freedom (ps, ln roughness), whose tail is
+    `exp(-x / 2)`, so over `n` tested points a threshold of `2 ln(n / alpha)` lets no point
+    cross it by chance with probability `1 - alpha` (`_CONFLICT_ALPHA`, Bonferroni). The
+    prior then describes other points than these (a glaze on part of one colour)."""
+    tested = np.asarray(tested, bool)
+    n = max(int(tested.sum()), 1)
+    delta = (np.asarray(cost_posterior) - np.asarray(cost_own)) / np.asarray(noise_scale)
+    return tested & np.isfinite(delta) & (delta > 2.0 * np.log(n / _CONFLICT_ALPHA))
