@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import logging
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -91,6 +92,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from . import checks
 from .fill import vertex_adjacency
 from .formfactors import FormFactors, form_factors
 from .local import INTERPOLATED, MEASURED, POOLED, UNRESOLVED, Estimate, LocalOptions, estimate_local, prepare_rows
@@ -103,6 +105,7 @@ __all__ = ["METHODS", "ErrorModel", "AutoOptions", "Measures", "Plan", "interref
 METHODS = ("local", "radiosity", "photon")
 
 _PD_FLOOR = 0.05  # albedo below which a point's own relative quantities are not trusted
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -644,6 +647,8 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     """
     if scan.radiance is None:
         raise ValueError("radiance: the scan has no observations to estimate from")
+    top = not checks.is_checked(scan)  # called by the user, not by another method
+    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
     t_start = time.perf_counter()
     caster = caster or RayCaster(scan.vertices, scan.faces)
     measures = measure(scan, options, caster)
@@ -717,11 +722,14 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
                          "mean_row_sum": float(measures.mass.mean())},
     }
     runs = {"local": measures.local.meta, **{k: other.meta for k, other in others.items()}}
-    est.meta = _jsonable({
+    est = dataclasses.replace(est, meta=_jsonable({
         "method": "auto", "model": options.local.model, "auto": auto, "seconds": seconds, "runs": runs,
         "options": {"target_error": options.target_error, "tolerance": options.tolerance, "rings": options.rings,
                     "min_region": options.min_region, "methods": list(options.methods),
                     "photon": dict(options.photon)},
         "points_with_observations": measures.local.meta.get("points_with_observations"),
-    })
+        "observation_checks": scan.meta["observation_checks"],
+    }))
+    if top:
+        checks.estimate_warnings(est, logger)
     return est

@@ -151,7 +151,7 @@ def run_job(job: Job, options, estimate=None) -> dict:
 def _remote_job(job: Job, options, estimate=None) -> dict:
     """`run_job` on a cluster worker: with the XLA compilation cache a worker does not
     recompile what another process compiled before."""
-    from .cli import _enable_compilation_cache
+    from .compile_cache import enable as _enable_compilation_cache
 
     _enable_compilation_cache()
     return run_job(job, options, estimate)

@@ -8,7 +8,9 @@ Conventions (see DESIGN.md):
 - `pd` is an albedo in [0, 1]: the diffuse BRDF is `pd / pi` in both models
   (the paper's Eq. 1 folds this `pi` into the light strength `Y`).
 - Roughness enters as its natural logarithm (`log_sigma`, `log_alpha`), the
-  parameterisation the solvers optimise.
+  parameterisation the solvers optimise. It is clipped to `LOG_ROUGHNESS_RANGE`
+  (roughness 1e-6 to 1e3 rad) inside the lobes, so an extreme value (even +-inf)
+  gives a finite lobe, with a zero gradient beyond the range.
 - `theta_r` is the angle between the normal and the half vector, computed with
   `atan2(|N x H|, N . H)` (see `half_angle`), never `arccos`.
 - A sample is *valid* when `cos_i > 0` and `cos_o > 0` (light and viewer above
@@ -41,6 +43,7 @@ import numpy as np
 
 __all__ = [
     "COS_FLOOR",
+    "LOG_ROUGHNESS_RANGE",
     "ROUGHNESS_GRID",
     "MODELS",
     "half_angle",
@@ -58,6 +61,11 @@ __all__ = [
 #: this (about 0.00006 degrees) are evaluated as if at this cosine, so values
 #: stay finite in float32.
 COS_FLOOR = 1e-6
+
+#: Range `(lo, hi)` of ln roughness [ln rad] the lobes evaluate: roughness 1e-6 to 1e3 rad.
+#: Wider than any fit's bounds; it keeps `exp`, `1 / alpha**2` and their gradients finite
+#: (float32 included) for any input, -inf and +inf among them.
+LOG_ROUGHNESS_RANGE = (float(np.log(1e-6)), float(np.log(1e3)))
 
 #: Roughness values [rad] that grid searches (variable projection) try: 3 mrad to
 #: 1.2 rad, log-spaced 64 values (coarser grids missed narrow minima in the tests).
@@ -110,7 +118,7 @@ def _valid_cosines(cos_i, cos_o):
 def torrance_sparrow_specular(ps, log_sigma, cos_i, cos_o, theta_r):
     """Specular lobe of the Torrance-Sparrow BRDF, 1/sr (scalar per row)."""
     ok, ci, co = _valid_cosines(cos_i, cos_o)
-    sigma = jnp.exp(log_sigma)
+    sigma = jnp.exp(jnp.clip(log_sigma, *LOG_ROUGHNESS_RANGE))
     expo = jnp.minimum(theta_r**2 / (2.0 * sigma**2), _EXP_CAP)
     return jnp.where(ok, ps * jnp.exp(-expo) / (ci * co), 0.0)
 
@@ -118,7 +126,7 @@ def torrance_sparrow_specular(ps, log_sigma, cos_i, cos_o, theta_r):
 def ward_specular(ps, log_alpha, cos_i, cos_o, theta_r):
     """Specular lobe of the isotropic Ward BRDF, 1/sr (scalar per row)."""
     ok, ci, co = _valid_cosines(cos_i, cos_o)
-    alpha2 = jnp.exp(2.0 * log_alpha)
+    alpha2 = jnp.exp(2.0 * jnp.clip(log_alpha, *LOG_ROUGHNESS_RANGE))
     # tan^2 from sin/cos of theta_r with a floored cosine: finite up to grazing.
     c = jnp.maximum(jnp.cos(theta_r), COS_FLOOR)
     tan2 = (jnp.sin(theta_r) / c) ** 2
@@ -136,7 +144,8 @@ def torrance_sparrow(pd, ps, log_sigma, cos_i, cos_o, theta_r):
     """Torrance-Sparrow BRDF of one row.
 
     **Arguments:** `pd` `(3,)` diffuse albedo; `ps` specular reflectance;
-    `log_sigma` log of the facet slope deviation sigma [rad]; `cos_i`, `cos_o`
+    `log_sigma` log of the facet slope deviation sigma [rad] (clipped to
+    `LOG_ROUGHNESS_RANGE`); `cos_i`, `cos_o`
     cosines of the light and view directions with the normal; `theta_r` [rad].
 
     **Returns:** `(3,)` BRDF [1/sr]; 0 for an invalid sample.

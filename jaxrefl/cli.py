@@ -6,13 +6,17 @@ lights, §2.2), `estimate` (per-point reflectance, Methods I and II), `table1` (
 paper's Table 1 on the synthetic objects), `capture` (one image per planned
 light through a serial light rig, resumable) and `demo` (the main job on the
 built-in synthetic default). Bad input ends with one line on stderr naming the
-field, exit code 2, and no output file.
+field, exit code 2, and no output file; so does an output path that names one of
+the command's inputs or an existing path that is not a regular file (a folder
+for folder outputs).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
+import os
 import sys
 
 import numpy as np
@@ -332,77 +336,34 @@ def cmd_select_lights(args) -> int:
 
 
 def estimate_to_file(scan_path, out, args) -> dict:
-    """Load the scan bundle `scan_path`, run the estimator that `args` (the `estimate`
-    options) choose, write the result file `out` atomically; the JSON summary.
-    `estimate` and `batch` both go through here."""
+    """Load the scan bundle `scan_path`, run `jaxrefl.estimate` with the method that `args`
+    (the `estimate` options) choose (`api.method_from_options`), write the result file `out`
+    atomically; the JSON summary. `estimate` and `batch` both go through here."""
     import time
 
+    from .api import estimate, method_from_options
+    from .checks import checked_scan, estimate_warnings
     from .io import load_scan
-    from .local import LocalOptions, estimate_local
     from .result import save_result
 
-    options = LocalOptions(model=args.model, paper=args.paper, steps=args.steps, window=args.window,
-                           min_snr=args.min_snr, solver=args.solver, pool=args.pool,
-                           prior=getattr(args, "prior", True), materials=getattr(args, "materials", 6))
-    if options.materials < 1:
-        raise ValueError(f"materials: must be >= 1, got {options.materials}")
-    if args.rays < 1 or args.outer < 1 or not args.light_bin >= 0:
-        raise ValueError("rays, outer: must be >= 1; light-bin: must be >= 0")
+    method = method_from_options(args)  # bad options fail before the bundle is read
     holdout, holdout_lights = getattr(args, "holdout", None), getattr(args, "holdout_lights", None)
     if holdout is not None and not 0 < holdout < 1:
         raise ValueError(f"holdout: the fraction of lights held out must lie in (0, 1), got {holdout}")
     if holdout_lights is not None:
         try:
-            holdout_lights = [int(t) for t in str(holdout_lights).split(",")]
+            holdout = [int(t) for t in str(holdout_lights).split(",")]
         except ValueError:
             raise ValueError(f"holdout-lights: expected comma-separated light indices, "
                              f"got {holdout_lights!r}") from None
     t0 = time.perf_counter()
-    scan = load_scan(scan_path)
+    scan = checked_scan(load_scan(scan_path))  # bad frames out before any held-out split; exit 2 if unphysical
     load_seconds = time.perf_counter() - t0
-    held = None
-    if holdout is not None or holdout_lights is not None:
-        from .holdout import choose_holdout, split_scan
-
-        held = choose_holdout(scan.n_lights, holdout, holdout_lights, getattr(args, "holdout_seed", 0))
-        scan, test_scan = split_scan(scan, held)  # the estimator sees the fitted lights only
-    photon = {"photons": args.photons, "iterations": args.iterations, "solver": args.photon_solver,
-              "damping": args.damping, "retrace_ess": args.retrace_ess, "light_bin": args.light_bin,
-              "min_snr": args.min_snr, "window": args.window, "gather_rays": args.gather_rays,
-              "gather_budget": args.gather_budget, "min_fit_p": args.min_fit_p, "fill_sd": args.fill_sd,
-              "fill_pd_scale": args.fill_pd_scale,
-              "fill_neighbours": args.fill_neighbours, "polish": args.polish}
-    if args.method == "radiosity":
-        from .radiosity import RadiosityOptions, estimate_radiosity
-
-        est = estimate_radiosity(scan, RadiosityOptions(rays=args.rays, light_bin=args.light_bin, outer=args.outer,
-                                                        paper=args.paper, local=options))
-    elif args.method == "photon":
-        import dataclasses
-
-        from .inverse_photon import PhotonOptions, estimate_photon
-
-        est = estimate_photon(scan, PhotonOptions(**photon, local=dataclasses.replace(options, model="ward")))
-    elif args.method == "auto":
-        from .auto import AutoOptions, estimate_auto
-        from .radiosity import RadiosityOptions
-
-        if not args.target_error >= 0 or not args.tolerance >= 0:
-            raise ValueError(f"target-error, tolerance: must be >= 0, got {args.target_error}, {args.tolerance}")
-        est = estimate_auto(scan, AutoOptions(
-            target_error=args.target_error, tolerance=args.tolerance, local=options, photon=photon,
-            radiosity=RadiosityOptions(rays=args.rays, light_bin=args.light_bin, outer=args.outer, paper=args.paper)))
-    else:
-        est = estimate_local(scan, options)
+    est = estimate(scan, method, holdout=holdout, holdout_seed=getattr(args, "holdout_seed", 0), progress=False)
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
-    if held is not None:
-        from .holdout import evaluate_holdout
-
-        evaluate_holdout(est, test_scan)
-        if holdout is not None:
-            est.meta["holdout"].update(fraction=holdout, seed=getattr(args, "holdout_seed", 0))
     save_result(out, est)
-    return {"method": args.method, "model": est.model, "out": str(out), **estimate_summary(est, scan)}
+    return {"method": args.method, "model": est.model, "out": str(out), **estimate_summary(est, scan),
+            "warnings": estimate_warnings(est, log=None)}
 
 
 def estimate_summary(est, scan) -> dict:
@@ -421,7 +382,7 @@ def estimate_summary(est, scan) -> dict:
     }
     summary.update({k: est.meta[k] for k in ("materials", "material_lobes", "outer_iterations", "form_factors",
                                              "light_configurations", "image_difference", "best_iteration",
-                                             "retraces", "auto", "holdout")
+                                             "retraces", "auto", "holdout", "misfit")
                     if k in est.meta})
     if "material_lobes" in summary:  # strict JSON: an unknown std or spread (inf) is null
         summary["material_lobes"] = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
@@ -443,6 +404,8 @@ def cmd_estimate(args) -> int:
             print(materials_lines(summary))
         if "holdout" in summary:
             print(holdout_line(summary["holdout"]))
+    if summary["warnings"]:  # one line on stderr; the details are in the logging records and --json
+        print(f"jaxrefl estimate: warning: {'; '.join(summary['warnings'])}", file=sys.stderr)
     return 0
 
 
@@ -779,19 +742,35 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def _enable_compilation_cache() -> None:
-    """Keep XLA compilations between runs (a fresh process otherwise recompiles for seconds)."""
-    import os
+#: Options naming files a command writes, and commands whose --out is a folder.
+_FILE_OUTPUTS = {"synth": ("out",), "render": ("out",), "select-lights": ("plot",), "estimate": ("out",),
+                 "fold": ("out",), "ingest": ("out",), "relight": ("out", "compare"), "maps": ("out",),
+                 "export": ("out",)}
+_FOLDER_OUTPUTS = ("demo", "table1", "figure18", "capture", "batch")
 
-    import jax
 
-    folder = os.environ.get("JAXREFL_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "jaxrefl"))
-    try:
-        os.makedirs(folder, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", folder)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-    except OSError:  # read-only home: run without the cache
-        pass
+def _check_outputs(args) -> None:
+    """Before any work: refuse an output that is an input of the command, another output,
+    or an existing path that is not a regular file (a folder for folder outputs)."""
+    from .io import check_output_path
+
+    inputs = [getattr(args, k, None) for k in ("scan", "result", "folder", "plan", "source")]
+    if getattr(args, "reference", None) not in (None, "truth"):
+        inputs.append(args.reference)
+    inputs += [item.rpartition("=")[2] for item in getattr(args, "results", None) or ()]
+    if args.command in _FOLDER_OUTPUTS:
+        check_output_path(args.out, "out", inputs, folder=True)
+        return
+    seen = {}
+    for name in _FILE_OUTPUTS.get(args.command, ()):
+        path = getattr(args, name, None)
+        if path is None:
+            continue
+        check_output_path(path, name, inputs)
+        key = os.path.realpath(path)
+        if key in seen:
+            raise ValueError(f"{name}: {path} is also --{seen[key]}")
+        seen[key] = name
 
 
 def main(argv=None) -> int:
@@ -805,6 +784,9 @@ def main(argv=None) -> int:
         add(sub)
     _add_batch(sub)
     args = parser.parse_args(argv)
+    from .compile_cache import enable as enable_compile_cache
+
+    enable_compile_cache()  # later runs load the compiled solvers from disk
     if args.version:
         from . import __version__
 
@@ -813,13 +795,17 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    _enable_compilation_cache()
+    # jaxrefl's logged warnings reach stderr as each command's own one-line summary
+    quiet = logging.getLogger("jaxrefl")
+    if not any(isinstance(h, logging.NullHandler) for h in quiet.handlers):
+        quiet.addHandler(logging.NullHandler())
     commands = {"synth": cmd_synth, "render": cmd_render, "info": cmd_info, "demo": cmd_demo,
                 "select-lights": cmd_select_lights, "table1": cmd_table1, "estimate": cmd_estimate,
                 "capture": cmd_capture, "fold": cmd_fold, "figure18": cmd_figure18}
     commands.update({"ingest": cmd_ingest, "relight": cmd_relight, "maps": cmd_maps, "export": cmd_export})
     commands["batch"] = cmd_batch
     try:
+        _check_outputs(args)
         return commands[args.command](args)
     except (ValueError, FileNotFoundError, IsADirectoryError) as exc:
         msg = str(exc) if not isinstance(exc, OSError) else f"{exc.filename}: {exc.strerror}"

@@ -20,9 +20,9 @@ Where rays start (`mode`):
   the face normal. Then `A_u F_uv = A_v F_vu` holds in expectation
   (reciprocity) and sums over patches give area-averaged form factors.
 
-Results are cached in memory and on disk (`$JAXREFL_CACHE/formfactors`,
-default `~/.cache/jaxrefl`) under a hash of the mesh and settings, so repeated
-runs do not recast.
+Results are cached in memory and on disk (`formfactors/` in jaxrefl's cache folder,
+`jaxrefl.compile_cache.base_dir`: `$JAXREFL_CACHE`, default `~/.cache/jaxrefl`) under a
+hash of the mesh and settings, so repeated runs do not recast.
 """
 
 from __future__ import annotations
@@ -192,9 +192,11 @@ def _key(vertices, faces, normals, rays, mode, seed, offset_factor) -> str:
     return h.hexdigest()
 
 
-def _cache_dir() -> str:
-    base = os.environ.get("JAXREFL_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "jaxrefl"))
-    return os.path.join(base, "formfactors")
+def _cache_dir() -> str | None:
+    from .compile_cache import base_dir
+
+    base = base_dir()
+    return None if base is None else os.path.join(base, "formfactors")
 
 
 def form_factors(vertices, faces, normals=None, *, rays: int = 256, mode: str = "vertex", seed: int = 0,
@@ -218,10 +220,11 @@ def form_factors(vertices, faces, normals=None, *, rays: int = 256, mode: str = 
     caster = caster or RayCaster(vertices, faces)
     normals = caster.offset_normals if normals is None else np.ascontiguousarray(normals, dtype=np.float64)
     key = _key(vertices, faces, normals, int(rays), mode, seed, caster.offset / caster.scale)
-    path = os.path.join(_cache_dir(), key + ".npz")
+    folder = _cache_dir()
+    path = None if folder is None else os.path.join(folder, key + ".npz")
     if cache and key in _MEMORY:
         return _MEMORY[key]
-    if cache and os.path.exists(path):
+    if cache and path is not None and os.path.exists(path):
         try:
             with np.load(path) as z:
                 ff = FormFactors(z["rows"], z["cols"], z["values"], z["areas"], int(rays), mode)
@@ -255,6 +258,9 @@ def form_factors(vertices, faces, normals=None, *, rays: int = 256, mode: str = 
         try:
             from .io import atomic_write
 
+            if path is None:  # JAXREFL_CACHE=off
+                return ff
+            os.makedirs(os.path.dirname(path), exist_ok=True)
             atomic_write(path, lambda fh: np.savez(fh, rows=ff.rows, cols=ff.cols, values=ff.values,
                                                    areas=ff.areas))
         except OSError:  # read-only cache folder: keep the memory copy only

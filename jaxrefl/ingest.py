@@ -31,7 +31,9 @@ the folder). Two layouts, told apart by the rig's `"type"`:
 
 Pixel values to radiance: PNG codes are divided by `2^bits - 1`, decoded
 from sRGB unless `"transfer": "linear"` (`.npy` images are linear floats),
-`black_level` (same units, after decoding) is subtracted, the result divided
+`black_level` (same units, after decoding) is subtracted (values below it, sensor
+noise, become 0; an image with more than 90% of its values below it is refused as a
+wrong black level or a broken image), the result divided
 by the image's `exposure` and, per channel, by the light's RGB intensity
 relative to its mean (so a bundle holds one intensity per light: the mean).
 A pixel is saturated when any channel of its *undecoded* value reaches
@@ -69,6 +71,13 @@ RIG_FILE = "rig.json"
 DISTANT = 1e6
 #: A pixel sees the sampled vertex when its ray hits within this many pixel footprints of it.
 _FOOTPRINTS = 2.5
+
+#: An image with more than this share of its values below the black level is refused:
+#: sensor noise puts at most about half of the dark pixels below it, a wrong black level or
+#: a broken image most of them. Isolated negative values are clipped to 0.
+_MAX_NEGATIVE = 0.9
+#: Intrinsics `K` with a larger condition number count as singular.
+_MAX_CONDITION = 1e12
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> samples per pixel
@@ -313,6 +322,8 @@ def _camera(entry, k) -> PinholeCamera:
         if key not in entry:
             raise ScanError(f"{name}.{key}", "missing")
     K = _array(entry["K"], (3, 3), f"{name}.K")
+    if not np.linalg.cond(K) < _MAX_CONDITION:
+        raise ScanError(f"{name}.K", f"intrinsics matrix is singular (not invertible): {K.tolist()}")
     if "R" in entry:
         R = _array(entry["R"], (3, 3), f"{name}.R")
     elif "rvec" in entry:
@@ -401,7 +412,12 @@ def _radiance(path, name, shape, transfer, black, saturation, exposure, gain):
     level = saturation if saturation is not None else (1.0 if top is not None else np.inf)
     saturated = np.any(rgb >= level, axis=-1)
     linear = srgb_to_linear(rgb) if (top is not None and transfer == "srgb") else rgb
-    signal = np.maximum(linear - black, 0.0) / exposure
+    signal = linear - black
+    negative = float(np.mean(signal < 0))
+    if negative > _MAX_NEGATIVE:
+        raise ScanError(name, f"{os.path.basename(path)}: {negative:.0%} of its values lie below the black "
+                              f"level ({black:g}, after decoding): check black_level and the image")
+    signal = np.maximum(signal, 0.0) / exposure
     return signal / (gain / gain.mean()), saturated
 
 

@@ -88,6 +88,7 @@ each configuration gets `photons * M / C` photons.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import asdict, dataclass, field
 from functools import partial
@@ -97,7 +98,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from . import brdf
+from . import brdf, checks
 from .classify import T_DIFF, T_SPEC, Thresholds
 from .fill import nearest_candidates, precise_huber, vertex_adjacency, window_reach
 from .lm import gauss_newton_1d
@@ -112,6 +113,7 @@ __all__ = ["PhotonOptions", "estimate_photon", "ALPHA_RANGE"]
 
 #: Range of the Ward roughness alpha [rad] the fits search.
 ALPHA_RANGE = (0.005, 1.0)
+logger = logging.getLogger(__name__)
 #: Largest specular reflectance the fits accept (an energy bound: larger values make the
 #: photon powers grow without limit along paths).
 PS_MAX = 1.0
@@ -496,6 +498,25 @@ def _final(data, static, index, fg, rows, theta):
                 d=d, q=q)
 
 
+def _misfit(scan, replay, index, fg, rows, estimate, dtype):
+    """Where the scan carries Ward ground truth (`true_pd`, `true_ps`, `true_alpha`): the
+    image difference (Eq. 14, noise-weighted) at the estimate and at the truth through the
+    same forward model (direct light, photon replay, final gather), and their ratio: near 1
+    when the iterations reached what the data allow, above it at a wrong fixed point.
+    None without truth."""
+    if scan.true_pd is None or scan.true_ps is None or scan.true_alpha is None:
+        return None
+
+    def cost(pd, ps, alpha):
+        theta = (jnp.asarray(pd, dtype), jnp.asarray(ps, dtype),
+                 jnp.asarray(np.log(np.clip(alpha, *ALPHA_RANGE)), dtype))
+        return float(_final(replay.data, replay.static, index, fg, rows, theta)["cost"])
+
+    at_estimate, at_truth = cost(*estimate), cost(scan.true_pd, scan.true_ps, scan.true_alpha)
+    ratio = at_estimate / at_truth if at_truth > 0 else None
+    return {"estimate": at_estimate, "truth": at_truth, "ratio": ratio}
+
+
 def _start(est: Estimate):
     """A valid Ward start/proposal from a Method I estimate."""
     pd = np.clip(est.pd, 0.0, 1.0)
@@ -531,11 +552,14 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     **Returns:** `Estimate` (model 'ward') with `meta['method'] == 'photon'`;
     `meta['image_difference']` per iteration (`cost` Eq. 14 noise-weighted,
     `mean_abs` [W/(sr m^2)]), `meta['best_iteration']`, re-traces, effective
-    sample sizes and seconds per stage. `progress(done, total)` is called after
+    sample sizes and seconds per stage; `meta['misfit']` where the scan has Ward ground
+    truth (`_misfit`). `progress(done, total)` is called after
     every block of iterations when given.
     """
     if scan.radiance is None:
         raise ValueError("radiance: the scan has no observations to estimate from")
+    top = not checks.is_checked(scan)  # called by the user, not by another method
+    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
     timings = {}
     t0 = time.perf_counter()
     caster = caster or RayCaster(scan.vertices, scan.faces)
@@ -625,14 +649,15 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                                             options.min_snr, options.min_fit_p))
     observed_any = use.any(1)
     status = np.full(scan.n_points, MEASURED, np.int8)
-    if identifiable.any():
-        nbr_f = jnp.asarray(nearest_candidates(scan.vertices, np.flatnonzero(identifiable), options.fill_neighbours))
+    known = identifiable
+    if known.any():
+        nbr_f = jnp.asarray(nearest_candidates(scan.vertices, np.flatnonzero(known), options.fill_neighbours))
         ps, rho = (np.array(x, np.float64) for x in _fill_lobes(
-            jnp.asarray(ps), jnp.asarray(rho), jnp.asarray(identifiable), jnp.asarray(sd_ps), jnp.asarray(sd_rho),
+            jnp.asarray(ps), jnp.asarray(rho), jnp.asarray(known), jnp.asarray(sd_ps), jnp.asarray(sd_rho),
             nbr_f, fill_target, affinity=_material_affinity(jnp.asarray(pd), nbr_f, options.fill_pd_scale)))
         alpha = np.exp(rho)
-        in_window = window_reach(adjacency, options.window) @ identifiable.astype(np.float64) > 0
-        status[~identifiable] = np.where(in_window[~identifiable], INTERPOLATED, UNRESOLVED)
+        in_window = window_reach(adjacency, options.window) @ known.astype(np.float64) > 0
+        status[~known] = np.where(in_window[~known], INTERPOLATED, UNRESOLVED)
         theta_f = _polish(replay.data, replay.static, index, fg, rows,
                           tuple(jnp.asarray(x, dt) for x in (pd, ps, rho)), options.polish)
         fin = _final(replay.data, replay.static, index, fg, rows, theta_f)
@@ -643,11 +668,12 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     scale_a = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
     info = np.asarray(fin["info_pd"], np.float64)
     std_pd = np.where(info > 0, np.sqrt(scale_a / np.where(info > 0, info, 1.0)), np.inf)
-    std_ps = np.where(identifiable, sd_ps, np.inf)
-    std_alpha = np.where(identifiable, alpha * np.where(identifiable, sd_rho, 0.0), np.inf)
+    std_ps = np.where(known, sd_ps, np.inf)
+    std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
     fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, alpha), (std_pd, std_ps, std_alpha))
+    misfit = _misfit(scan, replay, index, fg, rows, (pd, ps, alpha), dt)
     meta = {
         "method": "photon", "model": "ward",
         "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in asdict(options).items()},
@@ -662,5 +688,11 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "points_with_observations": int(observed_any.sum()),
         "points_with_diffuse_only_sample": int((~joint).sum()),
         "start": {"coverage": float(np.mean(init.status == MEASURED))},
+        "observation_checks": scan.meta["observation_checks"],
     }
-    return Estimate(pd, ps, alpha, status, std_pd, std_ps, std_alpha, identifiable, observed_any, "ward", meta)
+    if misfit is not None:
+        meta["misfit"] = misfit
+    est = Estimate(pd, ps, alpha, status, std_pd, std_ps, std_alpha, identifiable, observed_any, "ward", meta)
+    if top:
+        checks.estimate_warnings(est, logger)
+    return est

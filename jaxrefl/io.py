@@ -21,13 +21,15 @@ above it are saturated), ground truth `true_pd` (N, 3), `true_ps` (N,),
 `true_normals` (N, 3), and `meta` (a JSON string: provenance, rig, options).
 
 `load_scan` validates everything and raises `ScanError` naming the field.
-`save_scan` writes atomically (temporary file in the target folder, then rename).
+`save_scan` writes atomically (temporary file in the target folder, then rename), with
+mode `0o666 & ~umask`; it refuses to replace an existing path that is not a regular file.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import stat
 import tempfile
 from dataclasses import dataclass, field, fields
 
@@ -35,7 +37,8 @@ import numpy as np
 
 from .mesh import area_normal_sums
 
-__all__ = ["FORMAT_VERSION", "Scan", "ScanError", "load_scan", "save_scan", "validate_scan"]
+__all__ = ["FORMAT_VERSION", "Scan", "ScanError", "load_scan", "save_scan", "validate_scan", "atomic_write",
+           "check_output_path"]
 
 FORMAT_VERSION = 1
 
@@ -316,9 +319,46 @@ def folder_lock(folder, busy: str):
     return fh
 
 
-def atomic_write(path, write) -> None:
-    """Call `write(file_object)` on a temporary file beside `path`, then rename it to `path`."""
+def _umask() -> int:
+    """The process umask, read without changing it where the OS allows (Linux /proc)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)  # not thread-safe, but only where /proc is unavailable
+    os.umask(mask)
+    return mask
+
+
+def check_output_path(path, name: str = "out", inputs=(), *, folder: bool = False) -> None:
+    """Refuse an output path that would destroy something: an existing path that is not a
+    regular file (with `folder`: not a folder), such as a device, FIFO or directory, and a path
+    naming the same file as one of `inputs` (paths read by the same command; absent ones are
+    skipped). Raises `ValueError` naming the option `name`."""
     path = os.fspath(path)
+    if os.path.exists(path):
+        if folder and not os.path.isdir(path):
+            raise ValueError(f"{name}: {path} exists and is not a folder")
+        if not folder and not stat.S_ISREG(os.stat(path).st_mode):
+            kind = "a folder" if os.path.isdir(path) else "not a regular file (device, FIFO or socket)"
+            raise ValueError(f"{name}: {path} exists and is {kind}; refusing to replace it")
+        for inp in inputs:
+            if inp is not None and os.path.exists(inp) and os.path.samefile(path, inp):
+                raise ValueError(f"{name}: {path} is also an input of this command; "
+                                 "writing it would destroy the input")
+
+
+def atomic_write(path, write) -> None:
+    """Call `write(file_object)` on a temporary file beside `path`, then rename it to `path`.
+
+    The file gets mode `0o666 & ~umask` (as `open` would give it). An existing `path`
+    that is not a regular file (folder, device, FIFO) is refused with `ValueError`.
+    """
+    path = os.fspath(path)
+    check_output_path(path, "out")
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(path), dir=folder)
@@ -327,6 +367,7 @@ def atomic_write(path, write) -> None:
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600 whatever the umask
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

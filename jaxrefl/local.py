@@ -34,7 +34,11 @@ Per point, from its classified samples (`classify`):
    trade off along a valley the local curvature does not show). The residual
    variance of a row is at least the median row's (`_noise_scale`): a few samples,
    whose RGB channels often share their error, cannot show a noise far below
-   everyone else's.
+   everyone else's; nor below the rounding of the fit's own arithmetic (`_COST_ULPS`:
+   in float32 a noise-free row would otherwise claim any lobe). And two of the samples
+   above the noise must see the lobe at heights that pin its roughness by themselves
+   (`_MIN_HEIGHT_CONTRAST`): one height seen twice (mirror-symmetric lights) or a far
+   tail leaves ps and roughness on a valley.
 5. **Shared prior** (default, `prior=True`; `jaxrefl.prior`) — points are grouped
    into materials (K by BIC), each material's lobe is fitted jointly from all its
    points' samples (a material no sample saw near a specular peak, `T_spec`, has
@@ -57,6 +61,7 @@ from the nearest known lobes, or 0 when there is none; std infinite).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache, partial
@@ -65,7 +70,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import brdf
+from . import brdf, checks
 from . import prior as prior_mod
 from .classify import T_DIFF, T_INVALID, T_SPEC, Thresholds, classify_scan
 from .fill import vertex_adjacency, window_fill
@@ -73,15 +78,16 @@ from .lm import bounded_arrow_solve, gauss_newton_1d, projected_step_terms, rows
 from .pool import pooled_specular
 from .raycast import RayCaster
 from .rig import observation_geometry
+from .status import STATUS_NAMES, Status
 
-__all__ = ["MEASURED", "INTERPOLATED", "UNRESOLVED", "POOLED", "STATUS_NAMES", "LocalOptions", "Estimate", "estimate_local",
-           "fill_unobserved_pd", "finite_outputs",
+__all__ = ["Status", "MEASURED", "INTERPOLATED", "UNRESOLVED", "POOLED", "STATUS_NAMES", "LocalOptions", "Estimate",
+           "estimate_local", "fill_unobserved_pd", "finite_outputs",
            "prepare_rows", "fit_rows", "specular_closed_form", "quantisation_step"]
 
-MEASURED, INTERPOLATED, UNRESOLVED, POOLED = 0, 1, 2, 3
-STATUS_NAMES = ("measured", "interpolated", "unresolved", "pooled")  # by code
+MEASURED, INTERPOLATED, UNRESOLVED, POOLED = Status  # `jaxrefl.status`; STATUS_NAMES by code
 ROUGHNESS_NAME = {"torrance-sparrow": "sigma", "ward": "alpha"}
 _LN_FLOOR = -30.0  # ln of a reflectance so small it is zero for every purpose
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -111,10 +117,10 @@ class LocalOptions:
             raise ValueError("steps must be >= 1")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Estimate:
     """Per-point reflectance: `pd` `(N, 3)`, `ps` `(N,)`, `roughness` `(N,)`
-    [rad] (sigma or alpha, per `model`), `status` `(N,)` int8, standard
+    [rad] (sigma or alpha, per `model`), `status` `(N,)` int8 (`Status` codes), standard
     deviations `std_pd` `(N, 3)`, `std_ps`, `std_roughness` `(N,)`,
     `specular_identifiable` `(N,)` bool (ps and roughness from the point's own
     samples), `pd_measured` `(N,)` bool (the point had usable samples), and
@@ -133,6 +139,45 @@ class Estimate:
     model: str
     meta: dict = field(default_factory=dict)
     material: np.ndarray | None = None
+
+    # Conveniences, each delegating to the module that owns the work (imported late:
+    # those modules import this one).
+    @property
+    def seconds(self) -> dict:
+        """Seconds per stage (`meta['seconds']`, e.g. `classify`, `fit`, `fill`)."""
+        return dict(self.meta.get("seconds", {}))
+
+    def status_counts(self) -> dict:
+        """Points per `Status`: `{Status.MEASURED: n, ...}` (every member, 0 where none)."""
+        return {s: int(np.count_nonzero(self.status == s)) for s in Status}
+
+    def save(self, path) -> None:
+        """Write a result file atomically (`jaxrefl.result.save_result`; `load_result` reads it)."""
+        from .result import save_result
+
+        save_result(path, self)
+
+    def relight(self, scan, light_pos, intensity: float | None = None, **kw) -> np.ndarray:
+        """Linear image `(H, W, 3)` [W/(sr m^2)] of the object under a point light at
+        `light_pos` `(3,)` [m] (`jaxrefl.relight.relight_image`: `camera`, `model_gi`,
+        `width`, `height`); NaN off the object."""
+        from .relight import relight_image
+
+        return relight_image(self, scan, light_pos, intensity, **kw)
+
+    def to_ply(self, path, scan) -> None:
+        """Binary PLY of `scan`'s mesh with this result per vertex (`jaxrefl.export`)."""
+        from .export import export_ply
+
+        export_ply(path, scan.vertices, scan.faces, scan.normals, self)
+
+    def figure(self, scan=None, **kw):
+        """A matplotlib `Figure` (nothing written): the reflectance and status maps over
+        `scan`'s geometry, or without a scan histograms of pd, ps, roughness and the
+        status counts (`jaxrefl.render.estimate_figure`)."""
+        from .render import estimate_figure
+
+        return estimate_figure(self, scan, **kw)
 
 
 # -- closed forms ---------------------------------------------------------------------
@@ -598,6 +643,15 @@ def _reduced(prep, rho, model):
     return jax.lax.map(one, rho)
 
 
+@partial(jax.jit, static_argnames=("model",))
+def _material_reduced(prep, rho, labels, weights, model):
+    """`_reduced` summed per material on one chunk: `rho` `(G, K)` ln roughness per grid
+    value and material, `labels` `(n,)`, `weights` `(n,)` per row -> `(G, 3, K)`."""
+    per_row = _reduced(prep, rho[:, labels], model=model)
+    member = jax.nn.one_hot(labels, rho.shape[1], dtype=per_row.dtype) * weights[:, None]
+    return jnp.einsum("gqn,nk->gqk", per_row, member)
+
+
 @partial(jax.jit, static_argnames=("model", "steps"))
 def _map_polish(prep, prior, rho_own, model, steps):
     """Posterior mode per row of one chunk: the row's likelihood with the Gaussian `prior`
@@ -676,22 +730,28 @@ def _fit(rows, options, noise_floor, steps):
 
 class ChunkedRows:
     """The prepared per-sample terms of every chunk of rows, to solve again on the same data
-    (`reduced`: a material's joint lobe fit; `map_fit`: the posterior mode under a prior)."""
+    (`material_sums`: a material's joint lobe fit; `map_fit`: the posterior mode under a prior)."""
 
     def __init__(self, preps, chunk, n_rows, model):
         self.preps, self.chunk, self.n_rows, self.model = preps, chunk, n_rows, model
 
-    def _split(self, a):
-        """`(..., N)` -> list of `(..., chunk)` per chunk (padded with the last value)."""
+    def _split(self, a, fill=None):
+        """`(..., N)` -> list of `(..., chunk)` per chunk (padded with `fill`, default the last
+        value)."""
         a = np.asarray(a)
         pad = len(self.preps) * self.chunk - self.n_rows
-        a = np.concatenate([a, np.repeat(a[..., -1:], pad, axis=-1)], axis=-1) if pad else a
+        end = a[..., -1:] if fill is None else np.full(a.shape[:-1] + (1,), fill, a.dtype)
+        a = np.concatenate([a, np.repeat(end, pad, axis=-1)], axis=-1) if pad else a
         return [a[..., i * self.chunk:(i + 1) * self.chunk] for i in range(len(self.preps))]
 
-    def reduced(self, rho):
-        """`rho` `(G, N)` -> `(G, 3, N)` (`_reduced`)."""
-        parts = [_reduced(p, jnp.asarray(r), model=self.model) for p, r in zip(self.preps, self._split(rho))]
-        return np.concatenate([np.asarray(x) for x in parts], axis=-1)[..., :self.n_rows]
+    def material_sums(self, rho, labels, k: int, weights):
+        """`_reduced` summed per material with row `weights`: `rho` `(G, k)` ln roughness per
+        grid value and material, `labels` `(N,)` in `[0, k)` -> `(G, 3, k)` (float64)."""
+        k_pad = -(-k // 8) * 8  # one compilation for every K up to 8
+        rho = np.pad(np.asarray(rho, np.float64), [(0, 0), (0, k_pad - k)])
+        parts = [_material_reduced(p, jnp.asarray(rho), jnp.asarray(lab), jnp.asarray(w), model=self.model)
+                 for p, lab, w in zip(self.preps, self._split(labels), self._split(weights, fill=0.0))]
+        return np.sum([np.asarray(x, np.float64) for x in parts], axis=0)[..., :k]
 
     def map_fit(self, prior: dict, rho_own, steps: int) -> dict:
         """Posterior modes (`_map_polish`); `prior` of `(N,)` arrays; returns `params` `(N, 5)`,
@@ -711,9 +771,55 @@ _MIN_SPEC = 1  # T_spec samples a point needs for its own lobe (the paper's Eq. 
 _S2_FLOOR = 1e-10
 
 
-def _noise_scale(cost, dof):
+#: Rounding of the fit's own arithmetic: the cost is a sum of about ten O(1) terms relative to
+#: the data's weighted square `yy` (`_cost`), so a cost below a few ulp of `yy` is rounding,
+#: not a fit that good (float32, the command line's precision: 1e-3 of a 1 % noise model).
+_COST_ULPS = 16.0
+#: Two heights of the lobe, each `min_snr` above the noise, must by themselves pin ln roughness
+#: within 1 (the Fisher rule's bound): by Eq. 7 `ln z_j - ln z_k` is the difference of their
+#: exponents (`ln roughness = -ln b / 2 + const`), so `|dx| / sqrt(1/S_j^2 + 1/S_k^2) >= 1/2`
+#: (`S` signal-to-noise). Samples where the lobe is below the noise only bound it from above,
+#: and the local curvature there (large on noise-free data) is no evidence: seen at one
+#: height (twice, or once and in tails), ps and roughness trade off along a valley.
+_MIN_HEIGHT_CONTRAST = 0.5
+
+
+def _height_contrast(expo, snr2, min_snr):
+    """`(N,)` best `|expo_j - expo_k| / sqrt(1/S_j^2 + 1/S_k^2)` over pairs of samples above
+    `min_snr` (`snr2` `(N, M)` = S^2), one of them the strongest, the lowest or the highest
+    exponent among those."""
+    above = snr2 >= min_snr**2
+    inv = np.where(above, 1.0 / np.maximum(snr2, 1e-300), np.inf)
+    idx = np.arange(len(expo))
+    best = np.zeros(len(expo))
+    for j in (np.argmax(np.where(above, snr2, -np.inf), 1), np.argmin(np.where(above, expo, np.inf), 1),
+              np.argmax(np.where(above, expo, -np.inf), 1)):
+        q = np.abs(expo - expo[idx, j][:, None]) / np.sqrt(inv + inv[idx, j][:, None])
+        best = np.maximum(best, np.max(np.where(above & above[idx, j][:, None], q, 0.0), 1))
+    return best
+
+
+def _lobe_heights(model, rows, ps, rough, weights):
+    """The fitted lobe per sample `(N, M)`: its exponent (the lobe is `exp(-exponent)` of its
+    peak) and its squared weighted size (signal-to-noise squared for unit residual variance)."""
+    th = np.asarray(rows["theta_r"], np.float64)
+    use = np.asarray(rows["use"])
+    weights = np.where(use[..., None], weights, 0.0)  # unused samples may carry infinite weights
+    r2 = np.maximum(rough, 1e-12)[:, None] ** 2
+    if model == "torrance-sparrow":
+        expo = th**2 / (2.0 * r2)
+    else:
+        expo = (np.sin(th) / np.maximum(np.cos(th), brdf.COS_FLOOR)) ** 2 / r2
+    unit = np.asarray(brdf.MODELS[model][1](jnp.asarray(np.ones_like(th)), jnp.asarray(np.log(np.sqrt(r2))),
+                                            jnp.asarray(rows["cos_i"]), jnp.asarray(rows["cos_o"]), jnp.asarray(th)))
+    signal = (ps[:, None] * unit * np.asarray(rows["e"], np.float64)) ** 2 \
+        * np.sum(np.asarray(weights, np.float64) ** 2, -1)
+    return expo, np.where(use, signal, 0.0)
+
+
+def _noise_scale(cost, dof, floor=_S2_FLOOR):
     """Residual variance per row `(N,)`, at least the median over the rows (inf where
-    `dof <= 0`) and at least `_S2_FLOOR`.
+    `dof <= 0`) and at least `floor` (`_S2_FLOOR`, or per row `(N,)`).
 
     A row's own `cost / dof` rests on a few samples (its RGB channels share
     the lobe, and often the noise: grey objects, Monte Carlo renders), so by
@@ -721,7 +827,7 @@ def _noise_scale(cost, dof):
     """
     ok = (dof > 0) & np.isfinite(cost)
     s2 = np.where(ok, cost / np.maximum(dof, 1), np.inf)
-    return np.maximum(np.maximum(s2, np.median(s2[ok])), _S2_FLOOR) if ok.any() else s2
+    return np.maximum(np.maximum(s2, np.median(s2[ok])), np.maximum(floor, _S2_FLOOR)) if ok.any() else s2
 
 
 class RowFit(dict):
@@ -729,7 +835,7 @@ class RowFit(dict):
     and their standard deviations `std_pd`, `std_ps`, `std_roughness` (inf where
     unknown), `identifiable` `(N,)` (specular part measured), `has_diffuse_sample`
     `(N,)`, `weights` `(N, M, 3)` residual weights, `noise_scale` `(N,)` the residual
-    variance scale of each row, `std_ln_roughness` `(N,)`, `spec_samples` `(N,)` its
+    variance scale of each row, `cost` `(N,)` its weighted squared residual, `std_ln_roughness` `(N,)`, `spec_samples` `(N,)` its
     strong-specular (`T_SPEC`) samples, and `chunks` (`ChunkedRows`)."""
 
 
@@ -741,18 +847,26 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
     """
     out, chunks = _fit(rows, options, noise_floor, options.steps)
     params, spec_ok, n_spec, has_diff = out["params"], out["spec_ok"], out["n_spec"], out["has_diff"]
-    s2 = _noise_scale(out["cost"], out["dof"])
+    weights = np.asarray(_weights(rows["y"], rows["use"], noise_floor))
+    use = np.asarray(rows["use"])
+    yy = np.sum((np.where(use[..., None], weights, 0.0) * np.asarray(rows["y"], np.float64)) ** 2, axis=(1, 2))
+    eps = np.finfo(np.asarray(out["cost"]).dtype).eps  # of the arithmetic the fit ran in
+    s2 = _noise_scale(out["cost"], out["dof"], _COST_ULPS * eps * yy / np.maximum(out["dof"], 1))
     var = np.where(np.isfinite(out["var"]) & np.isfinite(s2)[:, None], out["var"] * s2[:, None], np.inf)
     sd = np.sqrt(np.maximum(var, 0.0))
     rough = np.exp(params[:, 4])
-    use = np.asarray(rows["use"])
+    # The lobe seen above the noise at two heights that pin its roughness (`_MIN_HEIGHT_CONTRAST`).
+    expo, signal = _lobe_heights(options.model, rows, params[:, 3], rough, weights)
+    heights = _height_contrast(expo, signal / np.where(np.isfinite(s2), s2, np.inf)[:, None], options.min_snr) \
+        >= _MIN_HEIGHT_CONTRAST
     if options.paper:
         enough = n_spec >= 2
     elif options.prior:
         # Statistics alone, no angle: the Fisher information of the point's own samples
         # (below), and the fitted lobe standing above the noise in two samples (with one, ps
         # and roughness trade off along a valley the local curvature does not show).
-        enough = (use.sum(1) >= 3) & (out["lobe_second"] >= options.min_snr**2 * s2)
+        enough = (use.sum(1) >= 3) & (out["lobe_second"] >= options.min_snr**2 * s2) \
+            & heights
     else:
         # The full-model fit pins a lobe down from one T_spec sample and its T_none
         # flanks, but without any sample near the peak (theta_r <= theta_th2) a "lobe"
@@ -762,13 +876,13 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
         # ps and roughness trade off along a valley whose edge (where the flanks start to
         # object) gives a sharp-looking but arbitrary minimum.
         seen_twice = out["lobe_second"] >= options.min_snr**2 * s2
-        enough = (n_spec >= _MIN_SPEC) & (use.sum(1) >= 3) & seen_twice
+        enough = (n_spec >= _MIN_SPEC) & (use.sum(1) >= 3) & seen_twice & heights
     identifiable = enough & spec_ok & np.all(np.isfinite(params), 1) \
         & (params[:, 3] > options.min_snr * sd[:, 3]) & (sd[:, 4] < 1.0)
     std_rough = np.where(np.isinf(sd[:, 4]), np.inf, rough * np.where(np.isinf(sd[:, 4]), 0.0, sd[:, 4]))
     return RowFit(pd=params[:, :3], ps=params[:, 3], roughness=rough, std_pd=sd[:, :3], std_ps=sd[:, 3],
                   std_roughness=std_rough, identifiable=identifiable, has_diffuse_sample=has_diff,
-                  weights=np.asarray(_weights(rows["y"], rows["use"], noise_floor)), noise_scale=s2,
+                  weights=weights, noise_scale=s2, cost=out["cost"],
                   std_ln_roughness=sd[:, 4], spec_samples=n_spec, chunks=chunks)
 
 
@@ -822,7 +936,7 @@ def _posterior_lobes(scan, fit, observed_any, options):
     materials = prior_mod.fit_materials(x, v, scan.vertices, k_max=options.materials)
     chunks = fit["chunks"]
     peak = fit["spec_samples"] * observed_any
-    lobes = prior_mod.material_lobes(chunks.reduced, materials.labels, materials.k, inv_s2,
+    lobes = prior_mod.material_lobes(chunks.material_sums, materials.labels, materials.k, inv_s2,
                                      np.log(brdf.ROUGHNESS_GRID), min_snr=options.min_snr, peak_samples=peak)
     # Own lobes count only in a material whose lobe some sample saw near its peak.
     seen = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k) >= 2
@@ -841,14 +955,24 @@ def _posterior_lobes(scan, fit, observed_any, options):
     var = np.where(np.isfinite(post["var"]), post["var"] * s2_safe[:, None], np.inf)
     sd = np.sqrt(np.maximum(var, 0.0))
     measured, pooled = prior_mod.status_from_posterior(own, fit["std_ps"] ** 2, fit["std_ln_roughness"] ** 2, prior)
+    # Prior-data conflict: a point whose own samples fit the prior's lobe worse than their own
+    # best lobe by more than chance allows is not of its material's lobe (a glaze on part of
+    # one colour): it keeps its own fit, measured where that pins the lobe, else unresolved.
+    conflict = prior_mod.prior_conflict(post["cost"], fit["cost"], s2_safe, prior.available & observed_any)
+    measured, pooled = (measured | (own & conflict)), pooled & ~conflict
+    own_params = np.c_[fit["pd"], fit["ps"], np.log(np.maximum(fit["roughness"], 1e-12))]
+    own_sd = np.c_[fit["std_pd"], fit["std_ps"], fit["std_ln_roughness"]]
+    params = np.where(conflict[:, None], own_params, post["params"])
+    sd = np.where(conflict[:, None], own_sd, sd)
     meta = {"materials": materials.k, "bic": {str(k): float(b) for k, b in materials.bic.items()},
             "material_lobes": [{"ps": float(lobes.ps[m]), "roughness": float(np.exp(lobes.rho[m])),
                                 "std_ps": float(lobes.sd_ps[m]), "std_ln_roughness": float(lobes.sd_rho[m]),
                                 "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
                                 "spread_ps": float(prior.spread_ps[m]), "spread_ln_roughness": float(prior.spread_rho[m])}
                                for m in range(materials.k)]}
-    return {"params": post["params"], "sd": sd, "measured": measured & observed_any,
-            "pooled": pooled & observed_any, "labels": materials.labels}, meta
+    meta["points_in_conflict_with_prior"] = int(conflict.sum())
+    return {"params": params, "sd": sd, "measured": measured & observed_any, "pooled": pooled & observed_any,
+            "conflict": conflict & ~measured, "labels": materials.labels}, meta
 
 
 def _bound_lobes(model, ps, rough) -> int:
@@ -863,7 +987,8 @@ def _bound_lobes(model, ps, rough) -> int:
 def _fill_from_prior(scan, fit, observed_any, adjacency, options, values, stds, status):
     """In place on `values` (pd, ps, roughness), `stds` and `status`: the posterior modes
     (`_posterior_lobes`) where the point's own samples or its prior pin the lobe
-    (`measured` / `pooled`); elsewhere the lobe of the nearest such points, `unresolved`.
+    (`measured` / `pooled`); elsewhere the lobe of the nearest such points, `unresolved`
+    (or, where the point's samples reject its prior, its own fit, `unresolved`).
     Returns `(measured, need_spec, material labels, meta)`."""
     pd, ps, rough = values
     std_pd, std_ps, std_rough = stds
@@ -881,6 +1006,9 @@ def _fill_from_prior(scan, fit, observed_any, adjacency, options, values, stds, 
         ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
     else:  # no lobe anywhere: report none, roughness undefined (0)
         ps[need_spec], rough[need_spec] = 0.0, 0.0
+    # Points whose data reject their prior keep their own fit: loose, but not contradicted.
+    mine = post["conflict"]
+    pd[mine], ps[mine], rough[mine] = params[mine, :3], params[mine, 3], np.exp(params[mine, 4])
     status[need_spec] = UNRESOLVED
     std_ps[need_spec], std_rough[need_spec] = np.inf, np.inf
     meta["points_pooled"] = int(post["pooled"].sum())
@@ -935,6 +1063,8 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     """
     if scan.radiance is None:
         raise ValueError("radiance: the scan has no observations to estimate from")
+    top = not checks.is_checked(scan)  # called by the user, not by another method
+    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
     timings = {}
     t0 = time.perf_counter()
     rows = rows if rows is not None else prepare_rows(scan, options.thresholds, caster)
@@ -982,6 +1112,10 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
                         for k, v in asdict(options).items()},
             "quantisation_step": q, "seconds": timings,
             "points_with_observations": int(observed_any.sum()),
-            "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum()), **extra}
-    return Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, observed_any,
-                    options.model, meta, material)
+            "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum()),
+            "observation_checks": scan.meta["observation_checks"], **extra}
+    est = Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, observed_any,
+                   options.model, meta, material)
+    if top:
+        checks.estimate_warnings(est, logger)
+    return est

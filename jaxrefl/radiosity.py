@@ -38,6 +38,7 @@ point has a `T_diff` sample.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -48,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import brdf
+from . import brdf, checks
 from .classify import T_DIFF, Thresholds
 from .fill import vertex_adjacency, window_fill
 from .formfactors import FormFactors, form_factors
@@ -61,6 +62,7 @@ __all__ = ["RadiosityOptions", "LightConfigs", "light_configs", "direct_irradian
 
 _HOST_WORK = 1 << 20  # nonzeros x columns above which a product is split over threads
 _CONFIG_STEP = 16  # light configurations are padded to a multiple of this (fewer compilations)
+logger = logging.getLogger(__name__)
 
 
 class _Sparse:
@@ -292,12 +294,14 @@ def _observed_inter(inter, pd, index, rows, cols, correction):
 def _inverse_step(pd, b, inter, e_cfg, b_obs, weight, e_obs, index, rows, cols, correction, cfg_obs, b_cfg_obs,
                   b_lambert, pd0, free, paper):
     """One step of the inverse fixed point given `inter = F b`: pd by least squares over
-    the weighted samples (points in `free` with a sample), then the forward radiosity."""
+    the weighted samples (points in `free` with a sample), then the forward radiosity. The
+    least squares is bounded, `0 <= pd <= 1`: per channel a 1-D quadratic, whose bounded
+    minimum is its free minimum moved into the interval."""
     h = e_obs[..., None] + _observed_inter(inter, pd, index, rows, cols, correction)
     num = jnp.sum(jnp.where(weight[..., None], b_obs * h, 0.0), 1)
     den = jnp.sum(jnp.where(weight[..., None], h * h, 0.0), 1)
     fit = free & weight.any(1)
-    pd_new = jnp.where(fit[:, None], num / jnp.where(den > 0, den, 1.0), pd0)
+    pd_new = jnp.where(fit[:, None], jnp.clip(num / jnp.where(den > 0, den, 1.0), 0.0, 1.0), pd0)
     forward = b_lambert if paper else pd_new[:, None, :] * (e_cfg[..., None] + inter)
     return pd_new, jnp.where(cfg_obs[..., None], b_cfg_obs, forward)
 
@@ -347,7 +351,7 @@ def inverse_radiosity(ff: FormFactors, configs: LightConfigs, e_cfg, radiance, o
     best = np.argmax(np.where(observed, e_obs, -1.0), axis=1)
     idx = np.arange(n)
     pd_lambert = np.where(observed[idx, best][:, None],
-                          b_obs[idx, best] / np.maximum(e_obs[idx, best], 1e-300)[:, None], pd0)
+                          np.clip(b_obs[idx, best] / np.maximum(e_obs[idx, best], 1e-300)[:, None], 0.0, 1.0), pd0)
     e_cfg = np.asarray(e_cfg)
     b_lambert = pd_lambert[:, None, :] * e_cfg[..., None]
     # paper: only the best T_diff sample (largest direct irradiance among them) counts
@@ -424,6 +428,8 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
     """
     if scan.radiance is None:
         raise ValueError("radiance: the scan has no observations to estimate from")
+    top = not checks.is_checked(scan)  # called by the user, not by another method
+    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
     region = np.ones(scan.n_points, bool) if points is None else np.asarray(points, bool)
     if region.shape != (scan.n_points,) or not region.any():
         raise ValueError(f"points: must be ({scan.n_points},) bool with at least one True")
@@ -493,6 +499,7 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
     pd = est.pd.copy()
     pd[seen & region] = inv.pd[seen & region]
     np.nan_to_num(pd, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    np.clip(pd, 0.0, 1.0, out=pd)  # already so (bounded fits); kept for every path
     meta = dict(est.meta)
     meta.update({
         "method": "radiosity",
@@ -505,4 +512,7 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
         "light_configurations": int(len(configs.positions)),
         "points_estimated": int(region.sum()),
     })
-    return dataclasses.replace(est, pd=pd, meta=meta)
+    est = dataclasses.replace(est, pd=pd, meta=meta)
+    if top:
+        checks.estimate_warnings(est, logger)
+    return est

@@ -28,6 +28,7 @@ import numpy as np
 from . import brdf, render
 from .local import Estimate
 from .raycast import RayCaster
+from .render import fit_camera, scan_camera  # cameras live with the pictures; re-exported here
 from .rig import PinholeCamera, observation_geometry
 
 __all__ = [
@@ -35,6 +36,7 @@ __all__ = [
     "indirect",
     "direct_radiance",
     "relight",
+    "relight_image",
     "fit_camera",
     "scan_camera",
     "truth_estimate",
@@ -122,38 +124,21 @@ def relight(vertices, faces, normals, est: Estimate, light_pos, intensity, cam_p
     return direct_radiance(vertices, normals, est, light_pos, intensity, cam_pos, caster) + extra
 
 
-def fit_camera(vertices, eye, target=None, width: int = 640, height: int = 480) -> PinholeCamera:
-    """A pinhole camera at `eye` looking at `target` (default: the bounding-box centre
-    of `vertices`) with the field of view that fits the whole object. An eye more
-    than 20 fitted distances away (a distant, orthographic camera) is brought in."""
-    v = np.asarray(vertices, dtype=np.float64)
-    lo, hi = v.min(0), v.max(0)
-    target = 0.5 * (lo + hi) if target is None else np.asarray(target, dtype=np.float64)
-    eye = np.asarray(eye, dtype=np.float64)
-    radius = float(np.max(np.linalg.norm(v - target, axis=1))) or 1.0
-    offset = eye - target
-    dist = float(np.linalg.norm(offset))
-    if dist <= radius * 1.01:
-        raise ValueError(f"camera: the eye {eye.round(4).tolist()} is inside the object's bounding sphere")
-    snug = radius / np.sin(np.radians(20.0))  # a 40-degree view would just fit the object
-    if dist > 20 * snug:
-        eye, dist = target + offset / dist * snug, snug
-    fov = min(float(np.degrees(2 * np.arcsin(min(radius / dist, 1.0))) * 1.1), 120.0)  # vertical
-    up = np.array([0.0, 1.0, 0.0])
-    if np.linalg.norm(np.cross(offset / dist, up)) < 1e-6:
-        up = np.array([0.0, 0.0, 1.0])
-    return PinholeCamera.look_at(eye, target, up=up, fov_deg=fov, width=width, height=height)
-
-
-def scan_camera(scan, width: int = 640, height: int = 480) -> PinholeCamera:
-    """The scan's camera for its first observation: its own pinhole camera when the
-    bundle describes one, else a camera fitted to the object from that position."""
-    rig = scan.meta.get("rig", {})
-    if rig.get("type") == "pinhole":
-        return PinholeCamera(K=np.array(rig["K"]), R=np.array(rig["R"]), t=np.array(rig["t"]),
-                             width=int(rig["width"]), height=int(rig["height"]), dist=np.array(rig["dist"]))
-    eye = scan.camera_positions()[0, 0]
-    return fit_camera(scan.vertices, eye, width=width, height=height)
+def relight_image(est: Estimate, scan, light_pos, intensity: float | None = None, *,
+                  camera: PinholeCamera | None = None, model_gi: str = "none", width: int = 640,
+                  height: int = 480) -> np.ndarray:
+    """Linear image `(H, W, 3)` [W/(sr m^2)] of `est` on `scan`'s mesh under a point light at
+    `light_pos` `(3,)` [m] of `intensity` [W/sr] (default: the scan's first light's), seen
+    by `camera` (default `scan_camera(scan, width, height)`); NaN off the object.
+    `model_gi` as in `relight`."""
+    if len(est.pd) != scan.n_points:
+        raise ValueError(f"scan: the result has {len(est.pd)} points, the scan {scan.n_points}")
+    intensity = float(scan.intensities()[0]) if intensity is None else float(intensity)
+    camera = camera if camera is not None else scan_camera(scan, width, height)
+    caster = RayCaster(scan.vertices, scan.faces)
+    radiance = relight(scan.vertices, scan.faces, scan.normals, est, light_pos, intensity, camera.center,
+                       model_gi, caster)
+    return picture(caster, scan.faces, radiance, camera)
 
 
 def truth_estimate(scan) -> Estimate:

@@ -14,6 +14,7 @@ import numpy as np
 
 from .raycast import Hits, RayCaster
 from .rig import PinholeCamera
+from .status import STATUS_NAMES, Status
 
 __all__ = [
     "cylindrical_hits",
@@ -21,9 +22,14 @@ __all__ = [
     "shade",
     "to_srgb8",
     "colormap",
+    "robust_top",
     "save_png",
     "scan_picture",
+    "fit_camera",
+    "scan_camera",
     "reflectance_figure",
+    "reflectance_maps",
+    "estimate_figure",
     "status_figure",
     "status_colormap",
     "STATUS_NAMES",
@@ -118,6 +124,40 @@ def save_png(path, image: np.ndarray) -> None:
     atomic_write(path, lambda fh: imsave(fh, image, format="png"))
 
 
+def fit_camera(vertices, eye, target=None, width: int = 640, height: int = 480) -> PinholeCamera:
+    """A pinhole camera at `eye` looking at `target` (default: the bounding-box centre
+    of `vertices`) with the field of view that fits the whole object. An eye more
+    than 20 fitted distances away (a distant, orthographic camera) is brought in."""
+    v = np.asarray(vertices, dtype=np.float64)
+    lo, hi = v.min(0), v.max(0)
+    target = 0.5 * (lo + hi) if target is None else np.asarray(target, dtype=np.float64)
+    eye = np.asarray(eye, dtype=np.float64)
+    radius = float(np.max(np.linalg.norm(v - target, axis=1))) or 1.0
+    offset = eye - target
+    dist = float(np.linalg.norm(offset))
+    if dist <= radius * 1.01:
+        raise ValueError(f"camera: the eye {eye.round(4).tolist()} is inside the object's bounding sphere")
+    snug = radius / np.sin(np.radians(20.0))  # a 40-degree view would just fit the object
+    if dist > 20 * snug:
+        eye, dist = target + offset / dist * snug, snug
+    fov = min(float(np.degrees(2 * np.arcsin(min(radius / dist, 1.0))) * 1.1), 120.0)  # vertical
+    up = np.array([0.0, 1.0, 0.0])
+    if np.linalg.norm(np.cross(offset / dist, up)) < 1e-6:
+        up = np.array([0.0, 0.0, 1.0])
+    return PinholeCamera.look_at(eye, target, up=up, fov_deg=fov, width=width, height=height)
+
+
+def scan_camera(scan, width: int = 640, height: int = 480) -> PinholeCamera:
+    """The scan's camera for its first observation: its own pinhole camera when the
+    bundle describes one, else a camera fitted to the object from that position."""
+    rig = scan.meta.get("rig", {})
+    if rig.get("type") == "pinhole":
+        return PinholeCamera(K=np.array(rig["K"]), R=np.array(rig["R"]), t=np.array(rig["t"]),
+                             width=int(rig["width"]), height=int(rig["height"]), dist=np.array(rig["dist"]))
+    eye = scan.camera_positions()[0, 0]
+    return fit_camera(scan.vertices, eye, width=width, height=height)
+
+
 def scan_picture(scan, what: str = "radiance", light: int = 0, view: str = "auto", width: int = 512):
     """uint8 RGB picture of a scan (see `jaxrefl render --help`)."""
     caster = RayCaster(scan.vertices, scan.faces)
@@ -165,10 +205,8 @@ def scan_picture(scan, what: str = "radiance", light: int = 0, view: str = "auto
 
 # -- figures (matplotlib) ----------------------------------------------------------------
 
-#: Status names by code, as `jaxrefl.local.STATUS_NAMES` (not imported: this module stays
-#: free of JAX), and one discrete colour each: measured green, interpolated yellow,
-#: unresolved red, pooled blue.
-STATUS_NAMES = ("measured", "interpolated", "unresolved", "pooled")
+#: One discrete colour per status (`STATUS_NAMES`, from the JAX-free `jaxrefl.status`):
+#: measured green, interpolated yellow, unresolved red, pooled blue.
 STATUS_COLOURS = ("#2ca02c", "#f2c200", "#d62728", "#1f77b4")
 
 
@@ -235,12 +273,36 @@ def _cmap(name: str):
     return matplotlib.colormaps[name].with_extremes(bad="white")
 
 
+#: Percentile of the known points' values that tops a map's colour scale: a few points far
+#: out (an unresolved lobe, a point at the energy bound) saturate instead of darkening the rest.
+_TOP_PERCENTILE = 99.0
+
+
+def robust_top(values, status=None) -> float:
+    """Top of a colour scale for per-point `values` `(N,)`: the `_TOP_PERCENTILE` percentile
+    over the points whose value was determined by data (`status` measured or pooled; all
+    finite values when there are none or no `status`), 1 when that is not positive."""
+    v = np.asarray(values, np.float64)
+    ok = np.isfinite(v)
+    if status is not None:
+        known = ok & np.isin(np.asarray(status), (Status.MEASURED, Status.POOLED))
+        ok = known if known.any() else ok
+    top = float(np.percentile(v[ok], _TOP_PERCENTILE)) if ok.any() else 0.0
+    return top if top > 0 else 1.0
+
+
 def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = None) -> None:
+    """`reflectance_maps(hits, shape, faces, est, title)` written to PNG `path`."""
+    _save_figure(path, reflectance_maps(hits, shape, faces, est, title))
+
+
+def reflectance_maps(hits: Hits, shape, faces, est, title: str | None = None):
     """The paper's Figures 10-11 for any result: (a) diffuse albedo pd as colour,
     (b) specular reflectance ps, (c) roughness in grey (largest = white), (d) status
     (measured / interpolated / unresolved / pooled, discrete colours with a legend), (a)-(c)
     each with its colour bar, over the pixels `hits` `(H*W rays)` of a view of `shape` `(H, W)`.
-    Written to PNG `path`."""
+
+    **Returns:** a matplotlib `Figure` (outside pyplot)."""
     rough_name = "sigma" if est.model == "torrance-sparrow" else "alpha"
     pd = shade(hits, faces, est.pd, shape)
     ps = shade(hits, faces, est.ps, shape)
@@ -253,13 +315,15 @@ def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = 
     pd_img = to_srgb8(pd, exposure=1.0, background=(255, 255, 255))
     a.imshow(pd_img)
     a.set_title("(a) diffuse albedo pd (sRGB)")
-    for ax, img, cmap, label, name in ((b, ps, "magma", "ps", "(b) specular reflectance ps"),
-                                       (c, rough, "gray", f"{rough_name} [rad]", f"(c) roughness {rough_name}")):
+    for ax, img, values, cmap, label, name in (
+            (b, ps, est.ps, "magma", "ps", "(b) specular reflectance ps"),
+            (c, rough, est.roughness, "gray", f"{rough_name} [rad]", f"(c) roughness {rough_name}")):
         cm = _cmap(cmap)
-        finite = img[np.isfinite(img)]
-        hi = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+        hi = robust_top(values, est.status)
         im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=0.0, vmax=hi)
-        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=label)
+        finite = img[np.isfinite(img)]
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=label,
+                     extend="max" if finite.size and finite.max() > hi else "neither")
         ax.set_title(name)
     _draw_status(fig, d, status, est.status)
     d.set_title("(d) status")
@@ -268,7 +332,48 @@ def reflectance_figure(path, hits: Hits, shape, faces, est, title: str | None = 
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    _save_figure(path, fig)
+    return fig
+
+
+def estimate_figure(est, scan=None, view: str = "auto", width: int = 512, title: str | None = None):
+    """A matplotlib `Figure` of a result `est` (nothing written).
+
+    With `scan` (the scan it was estimated from): `reflectance_maps` over a `view` of
+    its mesh, 'cylindrical' (the unwrap; 'auto' for the cylindrical scanner) or 'camera'
+    (the scan's camera, `width` px wide). Without: histograms of pd (per channel), ps and
+    roughness, and the points per status.
+    """
+    title = title or f"{est.meta.get('method', 'estimate')} ({est.model})"
+    if scan is not None:
+        if len(est.pd) != scan.n_points:
+            raise ValueError(f"scan: the result has {len(est.pd)} points, the scan {scan.n_points}")
+        caster = RayCaster(scan.vertices, scan.faces)
+        if view == "auto":
+            view = "cylindrical" if scan.meta.get("rig", {}).get("type") == "cylindrical-scanner" else "camera"
+        if view == "cylindrical":
+            hits, shape = cylindrical_hits(caster, width=width)
+        elif view == "camera":
+            hits, shape = camera_hits(caster, scan_camera(scan, width, max(2, width * 3 // 4)))
+        else:
+            raise ValueError(f"view: must be 'auto', 'cylindrical' or 'camera', got {view!r}")
+        return reflectance_maps(hits, shape, scan.faces, est, title)
+    rough_name = "sigma" if est.model == "torrance-sparrow" else "alpha"
+    fig = new_figure(figsize=(10.0, 2.8))
+    a, b, c, d = fig.subplots(1, 4)
+    for k, colour in enumerate("rgb"):
+        a.hist(est.pd[:, k], bins=40, color=colour, histtype="step")
+    a.set_title("pd (r, g, b)")
+    b.hist(est.ps, bins=40, color="0.3")
+    b.set_title("ps")
+    c.hist(est.roughness, bins=40, color="0.3")
+    c.set_title(f"{rough_name} [rad]")
+    counts = np.bincount(np.asarray(est.status, dtype=np.int64), minlength=len(STATUS_NAMES))
+    d.bar(range(len(STATUS_NAMES)), counts[:len(STATUS_NAMES)], color=STATUS_COLOURS)
+    d.set_xticks(range(len(STATUS_NAMES)), STATUS_NAMES, rotation=30, fontsize=8)
+    d.set_title("points per status")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
 
 
 def comparison_figure(path, image: np.ndarray, reference: np.ndarray, labels=("relit", "reference"),

@@ -190,7 +190,9 @@ def fold_profile(scan, results: dict, out_png: str | None = None, near: float = 
         fig.suptitle(f"Object E ({scan.meta.get('setup', '')} set-up): diffuse reflectance across the fold",
                      fontsize=10)
         fig.tight_layout()
-        fig.savefig(out_png, dpi=120)
+        from .io import atomic_write
+
+        atomic_write(out_png, lambda fh: fig.savefig(fh, format="png", dpi=120))
         out["figure"] = out_png
     return out
 

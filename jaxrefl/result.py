@@ -21,18 +21,73 @@ import json
 
 import numpy as np
 
-from .io import atomic_write
-from .local import ROUGHNESS_NAME, Estimate
+from .io import ScanError, atomic_write
+from .local import ROUGHNESS_NAME, STATUS_NAMES, Estimate
 
-__all__ = ["RESULT_VERSION", "save_result", "load_result", "truth_errors"]
+__all__ = ["RESULT_VERSION", "ResultError", "save_result", "load_result", "check_estimate", "truth_errors"]
 
 RESULT_VERSION = 1
 
 
+class ResultError(ScanError):
+    """A result file or `Estimate` failed validation; `field` names the key, `path` the file
+    (None for an in-memory estimate). A `ScanError`, hence a `ValueError`."""
+
+    def __init__(self, path, field_name: str, message: str):
+        ValueError.__init__(self, f"{path}: {field_name}: {message}" if path is not None
+                            else f"{field_name}: {message}")
+        self.field, self.path = field_name, path
+
+
+def check_estimate(est: Estimate, path=None) -> Estimate:
+    """Check the shapes, dtypes and values of every field of `est` (`N` points: `pd` `(N, 3)`,
+    `ps`, `roughness` `(N,)` finite; standard deviations never NaN, inf = unknown; `status` in
+    0..3; the masks bool); return it with NumPy arrays or raise `ResultError` naming the key
+    as the result file calls it (`path`: the file, for the message)."""
+    if est.model not in ROUGHNESS_NAME:
+        raise ResultError(path, "meta", f"unknown model {est.model!r}, expected one of {sorted(ROUGHNESS_NAME)}")
+    rough = ROUGHNESS_NAME[est.model]
+    pd = np.asarray(est.pd)
+    if pd.ndim != 2 or pd.shape[1] != 3:
+        raise ResultError(path, "pd", f"must have shape (N, 3), got {pd.shape}")
+    n = len(pd)
+    out = {}
+    for attr, key, shape, kind, finite in (
+        ("pd", "pd", (n, 3), "fiu", True), ("ps", "ps", (n,), "fiu", True), ("roughness", rough, (n,), "fiu", True),
+        ("std_pd", "std_pd", (n, 3), "fiu", False), ("std_ps", "std_ps", (n,), "fiu", False),
+        ("std_roughness", "std_rough", (n,), "fiu", False), ("status", "status", (n,), "iu", True),
+        ("specular_identifiable", "specular_identifiable", (n,), "b", True),
+        ("pd_measured", "pd_measured", (n,), "b", True), ("material", "material", (n,), "iu", True),
+    ):
+        value = getattr(est, attr)
+        if value is None and attr == "material":
+            out[attr] = None
+            continue
+        arr = np.asarray(value)
+        if arr.dtype.kind not in kind:
+            want = {"fiu": "a float", "iu": "an integer", "b": "a bool"}[kind]
+            raise ResultError(path, key, f"must be {want} array, got dtype {arr.dtype}")
+        if arr.shape != shape:
+            raise ResultError(path, key, f"must have shape {shape} (N = {n} points, from pd), got {arr.shape}")
+        bad = ~np.isfinite(arr) if finite else np.isnan(arr)
+        if kind == "fiu" and np.any(bad):
+            what = "non-finite value(s) (NaN or inf)" if finite else "NaN value(s) (inf marks an unknown std)"
+            raise ResultError(path, key, f"contains {int(bad.sum())} {what}, first at point "
+                                         f"{int(np.argmax(bad.reshape(n, -1).any(axis=1)))}")
+        out[attr] = arr
+    status = out["status"]
+    if n and (status.min() < 0 or status.max() >= len(STATUS_NAMES)):
+        raise ResultError(path, "status", f"codes must lie in [0, {len(STATUS_NAMES) - 1}], "
+                                          f"found [{status.min()}, {status.max()}]")
+    return Estimate(**out, model=est.model, meta=est.meta)
+
+
 def save_result(path, est: Estimate) -> None:
-    """Write `est` to `path` atomically."""
+    """Check `est` (`check_estimate`: `ResultError` naming the field, nothing written) and
+    write it to `path` atomically."""
     from . import __version__
 
+    est = check_estimate(est)
     meta = dict(est.meta, jaxrefl_version=__version__)
     arrays = {
         "format_version": np.int64(RESULT_VERSION),
@@ -46,20 +101,46 @@ def save_result(path, est: Estimate) -> None:
     atomic_write(path, lambda fh: np.savez(fh, **arrays))
 
 
+_REQUIRED = ("pd", "ps", "status", "std_pd", "std_ps", "std_rough", "specular_identifiable", "pd_measured")
+
+
 def load_result(path) -> Estimate:
-    """Read a result file written by `save_result` (raises ValueError naming a bad field)."""
-    with np.load(path, allow_pickle=False) as z:
-        data = {k: z[k] for k in z.files}
-    if int(data.get("format_version", -1)) != RESULT_VERSION:
-        raise ValueError(f"format_version: not a version-{RESULT_VERSION} jaxrefl result")
-    meta = json.loads(str(data["meta"]))
+    """Read and check a result file written by `save_result`; raises `ResultError` (a
+    `ScanError`, hence `ValueError`) naming the file and the bad key."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise
+    except Exception as exc:  # zipfile / pickle / format errors, truncated files
+        raise ResultError(path, "file", f"not a readable .npz result file ({type(exc).__name__}: {exc})") from None
+    if "format_version" not in data:
+        raise ResultError(path, "format_version", "missing: not a jaxrefl result file")
+    version = data["format_version"]
+    if version.shape != () or version.dtype.kind not in "iu" or int(version) != RESULT_VERSION:
+        raise ResultError(path, "format_version", f"unsupported version {version!r}, this jaxrefl reads "
+                                                  f"{RESULT_VERSION}")
+    if "pd" not in data and "vertices" in data:
+        raise ResultError(path, "pd", "missing: this is a scan bundle, not a result file (jaxrefl estimate "
+                                      "writes one)")
+    if "meta" not in data:
+        raise ResultError(path, "meta", "missing")
+    try:
+        meta = json.loads(str(data["meta"]))
+    except json.JSONDecodeError as exc:
+        raise ResultError(path, "meta", f"not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise ResultError(path, "meta", f"must be a JSON object, got {type(meta).__name__}")
     model = meta.get("model")
     if model not in ROUGHNESS_NAME:
-        raise ValueError(f"meta: unknown model {model!r}")
-    rough = data[ROUGHNESS_NAME[model]]
-    return Estimate(data["pd"], data["ps"], rough, data["status"], data["std_pd"], data["std_ps"],
-                    data["std_rough"], data["specular_identifiable"], data["pd_measured"], model, meta,
-                    data.get("material"))
+        raise ResultError(path, "meta", f"unknown model {model!r}, expected one of {sorted(ROUGHNESS_NAME)}")
+    for key in (*_REQUIRED, ROUGHNESS_NAME[model]):
+        if key not in data:
+            raise ResultError(path, key, "missing")
+    est = Estimate(data["pd"], data["ps"], data[ROUGHNESS_NAME[model]], data["status"], data["std_pd"],
+                   data["std_ps"], data["std_rough"], data["specular_identifiable"], data["pd_measured"], model,
+                   meta, data.get("material"))
+    return check_estimate(est, path)
 
 
 def _rel(a, b):

@@ -8,6 +8,12 @@ import jax
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
+# jaxrefl's caches (compiled programs, form factors: `jaxrefl.compile_cache`) go to a folder
+# of this session, shared with the CLI subprocesses it starts, never to the user's home.
+import tempfile  # noqa: E402
+
+os.environ.setdefault("JAXREFL_CACHE", tempfile.mkdtemp(prefix="jaxrefl-test-cache-"))
+
 # Tests import data_synth from the source tree whether or not the package is installed.
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

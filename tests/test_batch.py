@@ -14,7 +14,7 @@ import pytest
 
 import jaxrefl
 from data_synth.scans import make_scan
-from jaxrefl import batch, cli
+from jaxrefl import batch, cli, compile_cache
 from jaxrefl.io import atomic_write, folder_lock
 from jaxrefl.result import load_result
 
@@ -110,7 +110,7 @@ def test_resume_recomputes_only_missing_and_damaged_results(scan_dir, tmp_path):
 
 
 def test_failing_scans_are_reported_and_the_others_finish(scan_dir, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(cli, "_enable_compilation_cache", lambda: None)  # keep this process's JAX config
+    monkeypatch.setattr(compile_cache, "enable", lambda: None)  # keep this process's JAX config
     (tmp_path / "garbage.npz").write_text("not a scan bundle")
     listing = tmp_path / "scans.txt"
     listing.write_text(f"# two good scans, two bad\n{scan_dir / 's0.npz'}\n\ngarbage.npz\n"
@@ -175,7 +175,7 @@ def fail_once(scan, out, options):
 
 
 def test_dask_batch_and_concurrent_attempts_leave_one_result(client, scan_dir, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(cli, "_enable_compilation_cache", lambda: None)
+    monkeypatch.setattr(compile_cache, "enable", lambda: None)
     out = tmp_path / "out"
     assert cli.main(["batch", str(scan_dir), "--out", str(out), "--scheduler", client.scheduler.address]) == 0
     assert "3 scans: 3 done, 0 skipped, 0 failed" in capsys.readouterr().out

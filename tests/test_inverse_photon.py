@@ -54,6 +54,19 @@ def test_convex_object_matches_truth_and_method_one(convex, solver):
     assert measured.any()
     assert np.median(np.abs(est.ps[measured] / convex.true_ps[measured] - 1)) < 0.1
     assert np.all(est.std_ps[~measured] == np.inf) and np.all(np.isfinite(est.std_ps[measured]))
+    misfit = est.meta["misfit"]  # image difference at the estimate and at the truth
+    assert misfit["truth"] > 0 and misfit["estimate"] > 0 and misfit["ratio"] == misfit["estimate"] / misfit["truth"]
+
+
+@pytest.mark.xfail(strict=True, reason="Method III's lobe fill (neighbours' lobes for points step (b) does "
+                   "not measure) leaves images 10-100x worse explained than by the truth on this convex scene "
+                   "(issue: Methods II and III on any rig); the check stays to say when that is fixed")
+def test_estimate_explains_the_images_as_well_as_the_truth(convex):
+    """Convergence checked, not assumed: through the same forward model (direct light, photon
+    replay) the image difference at Method III's estimate is within 10 % of that at the truth
+    (below 1 where the estimate also fits some of the noise)."""
+    est = estimate_photon(convex, PhotonOptions(photons=20_000, iterations=4, check_every=2))
+    assert est.meta["misfit"]["ratio"] <= 1.1, est.meta["misfit"]
 
 
 def test_step_b_cost_from_channel_sums_equals_direct_sum():
@@ -112,6 +125,7 @@ def test_cli_estimate_photon(convex, tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["method"] == "photon" and summary["model"] == "ward"
     assert len(summary["image_difference"]["cost"]) == 4 and "errors" in summary
+    assert summary["misfit"]["ratio"] > 0  # the scan carries Ward ground truth
     res = load_result(out)
     assert res.model == "ward" and res.pd.shape == (convex.n_points, 3)
 

@@ -125,6 +125,8 @@ class PinholeCamera:
             if value.shape != shape or not np.all(np.isfinite(value)):
                 raise ValueError(f"PinholeCamera.{name} must be finite {shape}, got {value.shape}")
             object.__setattr__(self, name, value)
+        if not np.linalg.cond(self.K) < 1e12:
+            raise ValueError("PinholeCamera.K must be invertible, got a singular matrix")
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
             raise ValueError("PinholeCamera.R must be a rotation matrix")
         if self.width < 1 or self.height < 1:
@@ -226,23 +228,40 @@ def _angle_rows(points, normals, cam_pos, light_pos):
     return jax.vmap(row)(points, normals, cam_pos, light_pos)
 
 
-def _broadcast_rows(points, cam_pos, light_pos):
-    points = jnp.asarray(points)
+def _checked(name, value, shapes):
+    """`value` as a jax array of one of `shapes` (None: any size), finite; else ValueError(name).
+    Traced values (inside jit) are checked for shape only."""
+    arr = jnp.asarray(value)
+    if not any(len(arr.shape) == len(s) and all(d is None or d == a for a, d in zip(arr.shape, s))
+               for s in shapes):
+        want = " or ".join(str(tuple("?" if d is None else d for d in s)) for s in shapes)
+        raise ValueError(f"{name}: must have shape {want}, got {arr.shape}")
+    if not isinstance(arr, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(arr))):
+        bad = int(jnp.sum(~jnp.isfinite(arr)))
+        raise ValueError(f"{name}: contains {bad} non-finite value(s) (NaN or inf)")
+    return arr
+
+
+def _broadcast_rows(points, normals, cam_pos, light_pos):
+    """Check the arguments of `observation_geometry` (ValueError naming the argument) and
+    broadcast them to `(N, 3)`, `(N, 3)`, `(N, M, 3)`, `(N, M, 3)`."""
+    points = _checked("points", points, [(None, 3)])
     n = points.shape[0]
-    light_pos = jnp.asarray(light_pos)
+    normals = _checked("normals", normals, [(n, 3)])
+    light_pos = _checked("light_pos", light_pos, [(None, 3), (n, None, 3)])
     if light_pos.ndim == 2:
         light_pos = jnp.broadcast_to(light_pos, (n, *light_pos.shape))
     m = light_pos.shape[1]
-    cam_pos = jnp.asarray(cam_pos)
+    cam_pos = _checked("cam_pos", cam_pos, [(3,), (m, 3), (n, 1, 3), (n, m, 3)])
     cam_pos = jnp.broadcast_to(cam_pos.reshape((1,) * (3 - cam_pos.ndim) + cam_pos.shape), (n, m, 3))
-    return points, cam_pos, light_pos
+    return points, normals, cam_pos, light_pos
 
 
 def observation_angles(points, normals, cam_pos, light_pos):
     """`(cos_i, cos_o, theta_r)`, each `(N, M)`: `observation_geometry` without the
     vector fields (a lighter pass for classification). Arguments as there."""
-    points, cam_pos, light_pos = _broadcast_rows(points, cam_pos, light_pos)
-    return _angle_rows(points, jnp.asarray(normals), cam_pos, light_pos)
+    points, normals, cam_pos, light_pos = _broadcast_rows(points, normals, cam_pos, light_pos)
+    return _angle_rows(points, normals, cam_pos, light_pos)
 
 
 def observation_geometry(points, normals, cam_pos, light_pos) -> ObservationGeometry:
@@ -251,7 +270,8 @@ def observation_geometry(points, normals, cam_pos, light_pos) -> ObservationGeom
     **Arguments:** `points` `(N, 3)`; `normals` `(N, 3)` unit; `cam_pos`
     `(3,)`, `(M, 3)` or `(N, M, 3)`; `light_pos` `(M, 3)` or `(N, M, 3)` [m].
 
-    **Returns:** `ObservationGeometry` with `(N, M)` fields.
+    **Returns:** `ObservationGeometry` with `(N, M)` fields. Raises `ValueError` naming the
+    argument for a wrong shape or a non-finite value.
     """
-    points, cam_pos, light_pos = _broadcast_rows(points, cam_pos, light_pos)
-    return _geometry_rows(points, jnp.asarray(normals), cam_pos, light_pos)
+    points, normals, cam_pos, light_pos = _broadcast_rows(points, normals, cam_pos, light_pos)
+    return _geometry_rows(points, normals, cam_pos, light_pos)
