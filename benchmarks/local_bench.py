@@ -336,7 +336,7 @@ def main(argv=None):
     pd0, _ = _diffuse_init(chunk["y"], chunk["e"], chunk["use"], chunk["classes"], chunk["theta_r"], False)
     ln_ps0, ln_s0, ok, _ = _specular_init("torrance-sparrow", chunk, pd0, False)
     closed = np.c_[np.log(np.maximum(np.asarray(pd0).T, 1e-3)), np.asarray(ln_ps0), np.asarray(ln_s0)]
-    closed = np.where(np.asarray(ok)[:, None], closed[: args.subset], own)
+    closed = np.where(np.asarray(ok)[: args.subset, None], closed[: args.subset], own)
     scipy_rows = []
     scale = args.points / args.subset
     for name, start in (("jaxrefl's start", own), ("closed-form start", closed)):
@@ -355,7 +355,8 @@ def main(argv=None):
         "# Method I per-point fits: 12 lights a point",
         "",
         f"- Date: {datetime.datetime.now().isoformat(timespec='seconds')}; machine: {os.cpu_count()} cores, "
-        f"{platform.platform()}; float64 (the start search in float32)",
+        f"{platform.platform()}; JAX on {jax.default_backend()} ({jax.devices()[0].device_kind}); float64 "
+        f"(the start search in float32)",
         f"- {args.points:,} rows, random Torrance-Sparrow reflectance and geometry, 1 % noise; errors are "
         f"medians on the first {args.subset} rows (the optimistix run and the scipy loops use only those; "
         f"scipy times are scaled x{args.points // args.subset}).",
