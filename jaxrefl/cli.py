@@ -1,19 +1,19 @@
-"""The `jaxrefl` command line.
+"""The `jaxrefl` command line: dense surface reflectance of a scanned object by inverse rendering.
 
-Subcommands: `synth` (make a synthetic scan bundle), `render` (a picture of a
-scan), `info` (validate and summarise a scan), `select-lights` (choose capture
-lights, §2.2), `estimate` (per-point reflectance, Methods I and II), `table1` (the
-paper's Table 1 on the synthetic objects), `capture` (one image per planned
-light through a serial light rig, resumable) and `demo` (the main job on the
-built-in synthetic default). Bad input ends with one line on stderr naming the
-field, exit code 2, and no output file; so does an output path that names one of
-the command's inputs or an existing path that is not a regular file (a folder
-for folder outputs).
+A scan bundle (`.npz`: mesh, normals, camera, lights, linear images; `docs/formats.md`)
+goes in, a result file (per-point pd, ps, roughness, standard deviations, status) comes
+out. Commands: `synth` and `render` (synthetic scans), `info`, `select-lights`, `capture`
+and `ingest` (your own rig and photographs), `estimate` (Methods I, II, III and auto,
+optionally with held-out lights), `batch`, `maps`, `relight`, `export` (PLY), `fold`,
+`figure18`, `table1` and `demo` (the paper's experiments). Bad input ends with one line
+on stderr naming the field, exit code 2, and no output file; so does an output path that
+names one of the command's inputs or an existing path that is not a regular file.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import os
@@ -359,7 +359,8 @@ def estimate_to_file(scan_path, out, args) -> dict:
     t0 = time.perf_counter()
     scan = checked_scan(load_scan(scan_path))  # bad frames out before any held-out split; exit 2 if unphysical
     load_seconds = time.perf_counter() - t0
-    est = estimate(scan, method, holdout=holdout, holdout_seed=getattr(args, "holdout_seed", 0), progress=False)
+    est = estimate(scan, method, holdout=holdout, holdout_seed=getattr(args, "holdout_seed", 0),
+                   progress=_progress())
     est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
     save_result(out, est)
     return {"method": args.method, "model": est.model, "out": str(out), **estimate_summary(est, scan),
@@ -774,9 +775,12 @@ def _check_outputs(args) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="jaxrefl", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="jaxrefl", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="store_true", help="print the version and exit")
-    sub = parser.add_subparsers(dest="command")
+    # every command's --help shows the defaults
+    sub = parser.add_subparsers(dest="command", parser_class=functools.partial(
+        argparse.ArgumentParser, formatter_class=argparse.ArgumentDefaultsHelpFormatter))
     for add in (_add_synth, _add_render, _add_info, _add_select_lights, _add_estimate, _add_fold, _add_figure18, _add_table1,
                 _add_demo, _add_capture):
         add(sub)

@@ -190,3 +190,42 @@ def test_no_import_cycles():
         if m not in state:
             visit(m, [m])
     assert cycles == []
+
+
+def test_cli_estimate_in_a_terminal_shows_progress(scan_a, tmp_path):
+    """`jaxrefl estimate` with stderr on a terminal draws the stage bar (tqdm); piped (every
+    other CLI test) it prints none."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+    import threading
+
+    from jaxrefl.io import save_scan
+
+    save_scan(tmp_path / "a.npz", scan_a)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    args = [sys.executable, "-m", "jaxrefl.cli", "estimate", str(tmp_path / "a.npz")]
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # a new pty is 0 columns wide
+    chunks = []
+
+    def read():  # drain the terminal while the command runs (a full one would block it)
+        while True:
+            try:
+                data = os.read(leader, 65536)
+            except OSError:  # the command closed the terminal
+                return
+            if not data:
+                return
+            chunks.append(data)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    run = subprocess.run(args + ["--out", str(tmp_path / "r1.npz")], stderr=follower, stdout=subprocess.DEVNULL,
+                         env=env, timeout=600)
+    os.close(follower)
+    reader.join(timeout=10)
+    os.close(leader)
+    shown = b"".join(chunks).decode(errors="replace")
+    assert run.returncode == 0 and "jaxrefl: local" in shown, shown[-2000:]
