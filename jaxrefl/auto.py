@@ -17,7 +17,7 @@ Before anything global is fitted, every point gets these numbers:
   estimate of its own).
 
 **Error model** (`ErrorModel`, calibrated by `benchmarks/auto_bench.py
---calibrate` on Objects A-E; numbers in `benchmarks/RESULTS_auto.md`). Per point
+--calibrate` on the benchmark scenes; numbers in `benchmarks/RESULTS_auto.md`). Per point
 and method `k` the predicted relative error of pd (likewise ps) is
 
     e_k = sqrt(noise^2 + bias_k^2),  bias_k = a_k g + b_k s  (Methods I, II)
@@ -34,7 +34,7 @@ measured to predicted error ratios over bins of points (`uncertainty_pd`, `_ps`;
 about a factor 1.5 for pd).
 
 **Choice**: methods are ranked by cost (local < radiosity < photon, as measured
-on Objects A-D at the benchmark's settings: `RESULTS_auto.md`). Each predicted error
+at the benchmark's settings: `RESULTS_auto.md`). Each predicted error
 has two parts (`predict_parts`): `noise`, which the model takes from Method I's own
 covariance and the methods' noise floors, and `bias`, the interreflected light a
 method leaves in its fit, which is what the model is unsure of. The burden of proof
@@ -63,20 +63,18 @@ where Method III runs, at the points left to Method I that have a lobe of their 
 lobes and polishes pd at them); everywhere else Method I's result stands (it is what was
 fitted to measure the scene, and where interreflection is negligible it is at least as
 accurate: `RESULTS_auto.md`).
-The choice is made on pd: the ps model cannot rank the methods (its predicted scene
-medians are ~3 % for all of them where the measured ones range from 0.01 % to 9 %).
+The choice is made on pd: the ps model cannot rank the methods (it predicts about the
+same ps error for every method where the measured ones differ by orders of magnitude).
 **ps and roughness** come from Method III at every point wherever it runs (it refits
 every lobe with the interreflected light removed, and its fill spreads those lobes, not
-Method I's; seed-0 calibration scans, scene medians against Method I's: A 0.75x, B 0.99x,
-C 0.65x, D 0.19x, V 0.35x; E glossy 4.8x, 1.4 % against 0.3 %, where Method III is the
-only method near the best pd), else from Method I (Method II's ps against Method I's at
-the points with g > 0.02 of the seed-0 scans: D 3.0x, A 1.10x, B 0.95x).
+Method I's), else from Method I (Method II removes only the diffuse interreflection, so
+its ps is no better than Method I's). Measurements: `benchmarks/RESULTS_notes.md`.
 
 Method III (`jaxrefl.inverse_photon`) is imported only when needed; it fits the
 Ward model, so it is a candidate only with `local.model == 'ward'`, when the
 module is present, and when Method I measured a specular lobe somewhere (without
-one it models the same light as Method II, with Monte Carlo noise: on diffuse E
-the noise floors alone sent auto to Method III at 16.6x Method II's time). `meta['auto']` of the result reports the measured
+one it models the same light as Method II, with Monte Carlo noise, and the noise
+floors alone could otherwise make it look better at many times the cost). `meta['auto']` of the result reports the measured
 statistics, the predicted errors, every region and the reasons.
 """
 
@@ -128,15 +126,9 @@ class ErrorModel:
     another (`_pessimistic`). Fitted by `benchmarks/auto_bench.py --calibrate`
     (`RESULTS_auto.md`)."""
 
-    # `python3 -m benchmarks.auto_bench --calibrate --repeats 0 --seed 0 --tilt 30`: Objects A-D, V,
-    # E (diffuse, glossy; Ward and Torrance-Sparrow), resolution 32, Method III with the final gather
-    # (c92a16d); see RESULTS_auto.md. Refitted against Method III of ae30956 (median lobe fill, pd
-    # polish, 1024-ray gather), the same procedure gives Method III pd (0.002, 0.304), photon_mc_pd
-    # 0.506, uncertainty_pd (0.402, 0.368, 0.436): it moves Method III's error from s to g, predicts
-    # it above Method II's in D's and A's main regions (D 1.57 % vs 1.42 %, measured 1.31 % vs 1.80 %;
-    # A 1.30 % vs 1.28 %, measured 1.19 % vs 1.35 %) and on its own seed-0 scans sends D to Method II
-    # (pd 1.18x, ps 5.2x the best), where these coefficients keep Method III (0.98x / 1.00x): kept
-    # (RESULTS_auto.md).
+    # Fitted by `benchmarks/auto_bench.py --calibrate` on the synthetic benchmark scenes; the
+    # command, and a refit that was not adopted because it ranked the methods worse, are in
+    # benchmarks/RESULTS_notes.md.
     pd: tuple = ((0.794, 2.773), (0.0, 2.825), (0.0, 1.046))
     ps: tuple = ((0.0, 0.0), (0.0, 0.0), (0.0, 5.473))
     photon_mc_pd: float = 0.262
@@ -188,9 +180,9 @@ class AutoOptions:
     `radiosity.rays` and `radiosity.seed`, Method I's options replace
     `radiosity.local`); `photon` keyword arguments of `PhotonOptions` (Method III);
     `model` the error model; `radiosity_outer` Method II's alternations of pd and the specular
-    part in the regions, at most `radiosity.outer`: its pd settles after two (seed-0 scans of
-    Objects A-D: region medians within 0.07 points of three; `RESULTS_auto.md`), and the third
-    refines a specular fit auto takes from Method I (Method II's ps is not used)."""
+    part in the regions, at most `radiosity.outer`: its pd settles after two (measurements:
+    `benchmarks/RESULTS_notes.md`), and the third refines a specular fit auto takes from
+    Method I (Method II's ps is not used)."""
 
     target_error: float = 0.0
     tolerance: float = 0.1
@@ -526,9 +518,8 @@ def plan(scan, measures: Measures, options: AutoOptions = AutoOptions(), availab
     if "photon" in runs and getattr(measures.local, "specular_identifiable", None) is not None:
         # Method III runs on the whole object: at the points left to Method I that have a lobe of
         # their own its pd is taken too. Method I fits pd there jointly with a lobe its noise leaves
-        # loose; Method III refits the lobes and polishes pd at them (seed-0 scans, medians at those
-        # points, Method I / III: A 1.16 / 0.73 % (459 points), B 0.24 / 0.29 % (55), C 0.19 /
-        # 0.20 % (45), D 0.22 / 0.21 % (26))
+        # loose; Method III refits the lobes and polishes pd at them with the interreflected light
+        # removed (measurements: benchmarks/RESULTS_notes.md)
         lobed = (method == 0) & np.asarray(measures.local.specular_identifiable, bool)
         method[lobed] = METHODS.index("photon")
         extended |= lobed

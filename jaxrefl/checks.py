@@ -44,8 +44,8 @@ logger = logging.getLogger(__name__)
 #: albedo is at most 1; the median sample sits at the diffuse albedo plus a little lobe and
 #: interreflected light (a highlight covers few samples). 3 leaves room for glossy rigs that
 #: see many samples near their highlight, and still catches unit slips, which are powers of
-#: 10 (mm for m: 1e6; W for mW: 1e3). (Our synthetic rigs give 0.15-0.9: a check of the
-#: margin, not its source.)
+#: 10 (mm for m: 1e6; W for mW: 1e3). (Measured values on synthetic rigs:
+#: benchmarks/RESULTS_notes.md.)
 IMPLIED_PD_HIGH = 3.0
 #: Median implied albedo below which the observations are too dark to be this light's
 #: reflection: an order of magnitude below the darkest common materials (carbon black,

@@ -158,7 +158,7 @@ def run_demo(out: str, resolution: int = 48, samples: int = 64, seed: int = 0,
     holdout_a = evaluate_holdout(estimate, held_out)
     seconds["holdout_A"] = time.perf_counter() - t
 
-    # Relighting (issue 7): Method I's estimate of Object A under a fixed light the scanner never
+    # Relighting: Method I's estimate of Object A under a fixed light the scanner never
     # used (its rack rides the head), against the truth; the paper's Figure 10 maps; a PLY export.
     t = time.perf_counter()
     relit_a = _relight_against_truth(captured, estimate, out_path, "A")

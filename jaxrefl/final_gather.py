@@ -5,8 +5,9 @@ in the vertex's kernel (`jaxrefl.gather`): photons that arrive a few millimetres
 away, from a surface a few centimetres away, arrive from directions that differ
 from the vertex's by tens of degrees. A diffuse reflection barely notices; the
 Ward lobe of a glossy surface (alpha ~0.1 rad) does: near a fold the photon
-map blurs the reflected image of the other sheet over the kernel, by +-80 % at
-single points of Object E (`benchmarks/RESULTS_inverse_photon.md`).
+map blurs the reflected image of the other sheet over the kernel, enough to make
+single points far too bright or too dark (measurements:
+`benchmarks/RESULTS_notes.md`, `benchmarks/RESULTS_inverse_photon.md`).
 
 The first bounce (light -> surface point `y` -> observed vertex `x`) is
 therefore gathered from `x` itself: for every used observation `(x, j)`, `K`

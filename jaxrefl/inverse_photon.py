@@ -39,19 +39,20 @@ Outer iteration `k` (all points at once, `jax.lax.scan` inside one `jit`):
    measured lobes (the lobe fill below), so that an unmeasurable lobe cannot feed
    invented light to its neighbours;
 3. the new estimate moves a share `damping` of the way to (a) and (b) (0.5 by
-   default: the plain alternation swings between two states on Object E).
+   default: where interreflection is strong the plain alternation of the two coupled
+   fits overshoots and can swing between two states).
 
 After the iterations the specular part counts as measured where the point has
 a `T_spec` sample, two or more samples in step (b), `ps` above `min_snr`
 standard deviations, `ln alpha` known to +-1 (Gauss-Newton covariance,
 scaled by the reduced chi^2 when above 1), and, where `min_fit_p` > 0, a fit
 that passes a chi^2 goodness-of-fit test at that p-value (`_identifiable`).
-The test is off by default: a lobe its samples do not fit (reduced chi^2 of
-3-180 beside Object E's fold) already carries a covariance inflated by that
-chi^2, so the precision-weighted fill below outvotes it; the test, on top,
-also threw away good lobes on Objects A and B (A's legs and feet, B's bands
-of varying ps: 329 of 553 lobes kept on B, its lobes then filled from too few)
-and raised the image error there 1.4-1.8x (seed 0, the Table 2 scenes).
+The test is off by default: a lobe its samples do not fit already carries a
+covariance inflated by that chi^2, so the precision-weighted fill below outvotes
+it; the test, on top, also rejects good lobes whose samples the model explains
+less well for other reasons (ps varying across a point's samples), so that lobes
+are filled from too few, and it raised the image error (measurements:
+`benchmarks/RESULTS_notes.md`).
 
 **Lobe fill** (`_fill_lobes`, in every iteration and at the end): each point's
 `ln ps` and `ln alpha` are the precision-weighted Huber M-estimate, scale
@@ -62,24 +63,24 @@ median of those farther apart), of the measured lobes nearest it in space
 points' diffuse albedo is (`_material_affinity`, scale `fill_pd_scale`: pd
 apart by that share counts e^-1; from the pd at the start of every
 `check_every` iterations, and the final pd at the end), so lobes are pooled within a material and
-not across its edge (on Object B the fill had given the black, glossy feet the
-lobe of the dark, matte legs and the gold handle the torso's). A lobe measured to `fill_sd` or better
+not across its edge (a glossy part beside a matte one would otherwise take the matte
+lobe). A lobe measured to `fill_sd` or better
 stands alone; a looser one is outvoted by its neighbours; an unmeasured one is
 filled from the nearest measured ones, reaching as far as it takes to pin it.
 The point's status says `interpolated` where a measured lobe lies in its
 `window` ring, `unresolved` where it had to reach farther. Why not the window
-mean (as Methods I and II): on glossy Object E no lobe is measurable within 4 cm
-of the fold, and the few lobes measured 4-10 cm from it, at the edge of the
-highlight, are loose and some are wrong (ps 0.04-0.4 against 0.3); averaged
-into the fold they sent the wrong mirrored light to the other plate and left pd
-there 5-15 % off, depending on the photon seed.
+mean (as Methods I and II): beside a concave fold no lobe may be measurable, and
+the few lobes measured farther off, at the edge of the highlight, are loose and
+some are wrong; averaged into the fold they send the wrong mirrored light to the
+facing surface and bias pd there (measurements: `benchmarks/RESULTS_notes.md`).
 
 **pd at the final lobes** (`polish` steps (a), undamped, lobes fixed): `pd` is
 taken to the fixed point of its own interreflection under the final lobes. The
 kept iterate's `pd` was fitted against the lobes of its own iteration, which
-the fill and the damping still moved; on Object E refitting only the filled
-points, once, left pd beside the fold 2-3 points further off (4.6-6.5 % against
-2.9-3.3 %).
+the fill and the damping still moved; every point is refitted, to the fixed point,
+since each point's pd depends through the interreflected light on its neighbours'
+lobes and pd (refitting only the filled points, once, left pd beside a fold further
+off: `benchmarks/RESULTS_notes.md`).
 
 Per-point lights (a rotating scanner, `light_pos` `(N, M, 3)`) are binned into
 light configurations as Method II (`radiosity.light_configs`, `light_bin`);
@@ -128,8 +129,8 @@ class PhotonOptions:
     steps (simplex, x 10); `target_photons` effective photons per gather;
     `retrace_ess` re-trace threshold on the effective sample size (fraction);
     `check_every` iterations between checks; `damping` share of each
-    iteration's change taken (1: the paper's plain alternation, which on Object E
-    swings between two states); `light_bin` [m] for per-point lights;
+    iteration's change taken (1: the paper's plain alternation, which can swing
+    between two states where interreflection is strong); `light_bin` [m] for per-point lights;
     `gather_rays` final-gather rays per observation for the first bounce
     (`jaxrefl.final_gather`; 0: the photon map gathers every bounce), halved
     until the scan's total fits `gather_budget`; `min_snr`, `min_fit_p` the
@@ -388,8 +389,7 @@ def _identifiable(ps, var_ps, var_rho, chi2, rows, min_snr, min_fit_p):
     explains: chi^2 goodness of fit with p-value >= `min_fit_p` (chi^2 over the median
     reduced chi^2 of all lobe fits where that exceeds 1). A lobe fitted to
     samples the model does not explain (interreflection it gets wrong, a bad normal)
-    is biased however small its covariance; on Object E such lobes, beside the fold,
-    carried reduced chi^2 of 3-180 and alpha errors of 20-170 %."""
+    is biased however small its covariance (measurements: `benchmarks/RESULTS_notes.md`)."""
     dof = _dof(rows["n_b"])
     sd_ps, sd_rho = _lobe_sd(var_ps, var_rho, chi2, rows)
     # The noise model of the weights may be off by a factor on real data: chi^2 is

@@ -1,4 +1,4 @@
-"""Photon tracing and path replay for Method III (seed §5).
+"""Photon tracing and path replay for Method III (paper §5).
 
 Photons leave each point light, are traced with Embree, and scatter at every
 surface they reach; directions come from a fixed *proposal* reflectance, so
@@ -373,8 +373,8 @@ def _sort_levels(paths: PhotonPaths, n_lights: int) -> PhotonPaths:
     """Reorder photons within each bounce level by (arrival face, light).
 
     Gathers then read photon powers nearly in order (faces are numbered
-    coherently in space): on 3.7M photons this made the splat 3x faster than
-    the order photons were traced in."""
+    coherently in space), which makes the splat several times faster than the
+    order photons were traced in (measurements: `benchmarks/RESULTS_notes.md`)."""
     p = len(paths.light)
     perm = np.empty(p, dtype=np.int64)
     off = paths.level_offsets

@@ -1,4 +1,4 @@
-"""Range-data preprocessing (seed §2.1): outlier removal, normals by adaptive local
+"""Range-data preprocessing (paper §2.1): outlier removal, normals by adaptive local
 quadratic surface fitting (Yokoya & Levine 1989), range image -> mesh.
 
 A Cyberware-style rangefinder rotating about the y axis measures, for every head
@@ -20,8 +20,8 @@ ranks windows by the estimated variance of the fitted slope *at the pixel*,
 `sigma_hat^2` from ~20 residuals is itself uncertain by ~30 %): a window
 straddling a discontinuity has a huge `sigma_hat^2` and loses as before, while on
 smooth ground the centred window wins. Both rules are measured in
-`benchmarks/normals_report.py` (on Object A the literal rule triples the median
-normal error).
+`benchmarks/normals_report.py` (measurements: `benchmarks/RESULTS_notes.md`,
+`benchmarks/RESULTS_normals.md`).
 """
 
 from __future__ import annotations
