@@ -594,7 +594,8 @@ def cmd_ingest(args) -> int:
 def cmd_relight(args) -> int:
     from . import relight as rl
     from . import render
-    from .ingest import read_image, srgb_to_linear
+    from .ingest import read_image
+    from .srgb import to_linear
     from .io import atomic_write
     from .raycast import RayCaster
 
@@ -634,7 +635,7 @@ def cmd_relight(args) -> int:
             raise ValueError(f"reference: {rgb.shape[1]}x{rgb.shape[0]} pixels, the relit image "
                              f"{image.shape[1]}x{image.shape[0]}")
         if top is not None:  # a photograph: sRGB, unknown exposure
-            rgb = srgb_to_linear(rgb)
+            rgb = to_linear(rgb)
             scale = float(np.sum(image[on] * rgb[on]) / max(np.sum(rgb[on] ** 2), 1e-300))
             rgb, summary["reference_scale"] = rgb * scale, scale
         reference, label = np.where(on[..., None], rgb, np.nan), "reference"

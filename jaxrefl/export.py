@@ -30,16 +30,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import srgb
 from .io import atomic_write
 from .local import ROUGHNESS_NAME, Estimate
 
 __all__ = ["result_mesh", "export_ply", "load_ply"]
-
-
-def _srgb8(linear: np.ndarray) -> np.ndarray:
-    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return np.round(srgb * 255).astype(np.uint8)
 
 
 def result_mesh(vertices, faces, normals, est: Estimate):
@@ -51,7 +46,7 @@ def result_mesh(vertices, faces, normals, est: Estimate):
         raise ValueError(f"result: {len(est.pd)} points, the scan has {n} vertices")
     if est.model not in ROUGHNESS_NAME:
         raise ValueError(f"model: unknown reflectance model {est.model!r}")
-    colours = np.concatenate([_srgb8(est.pd), np.full((n, 1), 255, np.uint8)], axis=1)
+    colours = np.concatenate([srgb.from_linear8(est.pd), np.full((n, 1), 255, np.uint8)], axis=1)
     mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
                            vertex_normals=np.asarray(normals, dtype=np.float64), vertex_colors=colours,
                            process=False)

@@ -44,12 +44,12 @@ from __future__ import annotations
 
 import json
 import os
-import struct
-import zlib
 from typing import NamedTuple
 
+import imagecodecs
 import numpy as np
 
+from . import srgb
 from .io import Scan, ScanError, atomic_write, validate_scan
 from .mesh import area_normal_sums
 from .raycast import RayCaster
@@ -61,7 +61,6 @@ __all__ = [
     "ingest",
     "read_image",
     "write_png",
-    "srgb_to_linear",
     "undistort",
     "bilinear",
 ]
@@ -80,80 +79,28 @@ _MAX_NEGATIVE = 0.9
 _MAX_CONDITION = 1e12
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> samples per pixel
 
 
 # -- images ------------------------------------------------------------------------------
 
 
-def _png_chunks(data: bytes):
-    pos = len(_PNG_SIGNATURE)
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
-        yield kind, data[pos + 8 : pos + 8 + length]
-        pos += 12 + length
-
-
-def _unfilter(filters: np.ndarray, raw: np.ndarray, bpp: int) -> np.ndarray:
-    """Undo PNG row filters. `filters` `(H,)`, `raw` `(H, W * bpp)` uint8 -> uint8 same shape.
-
-    Pixel (r, c) depends on its left, upper and upper-left neighbours, so all
-    pixels of one anti-diagonal `r + c = d` are decoded together: `H + W - 1`
-    vectorised steps whatever filters the rows use.
-    """
-    h, row_bytes = raw.shape
-    w = row_bytes // bpp
-    if np.any(filters > 4):
-        raise ValueError(f"corrupt PNG: unknown row filter {int(filters.max())}")
-    src = raw.reshape(h, w, bpp).astype(np.int16)
-    out = np.zeros((h + 1, w + 1, bpp), np.int16)  # a zero row above and column to the left
-    kind = filters.astype(np.int16)
-    for d in range(h + w - 1):
-        r = np.arange(max(0, d - w + 1), min(d, h - 1) + 1)
-        c = d - r
-        a, b, ul = out[r + 1, c], out[r, c + 1], out[r, c]
-        p = a + b - ul
-        pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - ul)
-        paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, ul))
-        f = kind[r][:, None]
-        pred = np.select([f == 1, f == 2, f == 3, f == 4], [a, b, (a + b) // 2, paeth], 0)
-        out[r + 1, c + 1] = (src[r, c] + pred) & 255
-    return out[1:, 1:].astype(np.uint8).reshape(h, row_bytes)
-
-
 def _read_png(path) -> tuple[np.ndarray, int]:
-    """`(H, W, C)` unsigned codes and the top code. 8/16-bit grey, grey+alpha, RGB and
-    RGBA (not interlaced) are decoded here (Pillow reads 16-bit colour as 8 bits);
-    palette, 1/2/4-bit and interlaced 8-bit images go through Pillow."""
+    """`(H, W, C)` unsigned codes and the top code, decoded by libpng (imagecodecs).
+
+    Any PNG: 8/16-bit grey, grey+alpha, RGB, RGBA, interlaced or not; palette images
+    come back as RGB(A) and 1/2/4-bit grey as 8-bit. Pillow and imageio read 16-bit
+    colour as 8 bits, hence imagecodecs.
+    """
     with open(path, "rb") as fh:
         data = fh.read()
     if not data.startswith(_PNG_SIGNATURE):
         raise ValueError("not a PNG file")
-    chunks = list(_png_chunks(data))
-    if not chunks or chunks[0][0] != b"IHDR" or len(chunks[0][1]) != 13:
-        raise ValueError("corrupt PNG: no IHDR chunk")
-    w, h, depth, ctype, _, _, interlace = struct.unpack(">IIBBBBB", chunks[0][1])
-    if depth in (8, 16) and ctype in _PNG_CHANNELS and interlace == 0:
-        ch = _PNG_CHANNELS[ctype]
-        bpp = ch * depth // 8
-        try:
-            raw = zlib.decompress(b"".join(d for k, d in chunks if k == b"IDAT"))
-        except zlib.error as exc:
-            raise ValueError(f"corrupt PNG ({exc})") from None
-        if len(raw) != h * (1 + w * bpp):
-            raise ValueError(f"corrupt PNG: {len(raw)} bytes of pixel data for {w}x{h}")
-        rows = np.frombuffer(raw, np.uint8).reshape(h, 1 + w * bpp)
-        pix = _unfilter(rows[:, 0], rows[:, 1:], bpp)
-        if depth == 16:
-            pix = pix.view(">u2")
-        return pix.reshape(h, w, ch).astype(np.uint16 if depth == 16 else np.uint8), 2**depth - 1
-    if depth == 16:
-        raise ValueError("interlaced 16-bit PNG is not supported: save it without interlacing")
-    from PIL import Image
-
-    with Image.open(path) as im:
-        im = im.convert("RGBA" if "transparency" in im.info or "A" in im.mode else "RGB")
-        return np.asarray(im), 255
+    try:
+        codes = imagecodecs.png_decode(data)
+    except imagecodecs.PngError as exc:
+        raise ValueError(f"corrupt PNG ({exc})") from None
+    codes = codes[..., None] if codes.ndim == 2 else codes
+    return codes, int(np.iinfo(codes.dtype).max)
 
 
 def read_image(path) -> tuple[np.ndarray, int | None]:
@@ -181,8 +128,7 @@ def read_image(path) -> tuple[np.ndarray, int | None]:
 def write_png(path, image: np.ndarray) -> None:
     """Write a uint8 or uint16 image `(H, W)` or `(H, W, C)`, C in 1..4, as PNG atomically.
 
-    16-bit colour is written here because Pillow cannot; rows are unfiltered
-    and zlib-compressed.
+    Encoded by libpng (imagecodecs), which writes 16-bit colour (Pillow cannot).
     """
     img = np.asarray(image)
     if img.dtype not in (np.uint8, np.uint16):
@@ -190,25 +136,8 @@ def write_png(path, image: np.ndarray) -> None:
     img = img[..., None] if img.ndim == 2 else img
     if img.ndim != 3 or img.shape[2] not in (1, 2, 3, 4) or 0 in img.shape:
         raise ValueError(f"write_png: image must be (H, W) or (H, W, 1..4), got {np.shape(image)}")
-    h, w, ch = img.shape
-    depth = 16 if img.dtype == np.uint16 else 8
-    ctype = {1: 0, 2: 4, 3: 2, 4: 6}[ch]
-    body = np.ascontiguousarray(img.astype(">u2" if depth == 16 else np.uint8)).view(np.uint8)
-    rows = np.concatenate([np.zeros((h, 1), np.uint8), body.reshape(h, -1)], axis=1)
-
-    def chunk(kind, payload):
-        crc = struct.pack(">I", zlib.crc32(kind + payload))
-        return struct.pack(">I", len(payload)) + kind + payload + crc
-
-    png = (_PNG_SIGNATURE + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, depth, ctype, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6)) + chunk(b"IEND", b""))
+    png = imagecodecs.png_encode(np.ascontiguousarray(img if img.shape[2] > 1 else img[..., 0]))
     atomic_write(path, lambda fh: fh.write(png))
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """Decode sRGB-encoded values in [0, 1] to linear (IEC 61966-2-1)."""
-    x = np.asarray(x, dtype=np.float64)
-    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4)
 
 
 def undistort(camera: PinholeCamera, uv: np.ndarray, iterations: int = 20) -> np.ndarray:
@@ -411,7 +340,7 @@ def _radiance(path, name, shape, transfer, black, saturation, exposure, gain):
     rgb = values[..., :3] if ch >= 3 else np.repeat(values[..., :1], 3, axis=-1)
     level = saturation if saturation is not None else (1.0 if top is not None else np.inf)
     saturated = np.any(rgb >= level, axis=-1)
-    linear = srgb_to_linear(rgb) if (top is not None and transfer == "srgb") else rgb
+    linear = srgb.to_linear(rgb) if (top is not None and transfer == "srgb") else rgb
     signal = linear - black
     negative = float(np.mean(signal < 0))
     if negative > _MAX_NEGATIVE:

@@ -303,20 +303,16 @@ def save_scan(path, scan: Scan) -> None:
 
 
 def folder_lock(folder, busy: str):
-    """An open lock file in `folder`, held exclusively until closed (use as a context
-    manager); `ValueError(busy)` when another process holds it. Not POSIX: no lock."""
+    """The lock file `folder/.lock`, held exclusively for a `with` block (filelock: `flock`
+    on POSIX, `msvcrt` on Windows); `ValueError(busy)` at once when another process, or
+    another lock in this one, holds it. The file stays after release."""
+    from filelock import FileLock, Timeout
+
+    lock = FileLock(os.path.join(folder, ".lock"), preserve_lock_file=True)
     try:
-        import fcntl
-    except ImportError:
-        fcntl = None
-    fh = open(os.path.join(folder, ".lock"), "a")
-    if fcntl is not None:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.close()
-            raise ValueError(busy) from None
-    return fh
+        return lock.acquire(timeout=0)
+    except Timeout:
+        raise ValueError(busy) from None
 
 
 def _umask() -> int:

@@ -105,7 +105,11 @@ def _anderson(fun, init, tol, max_iter, history: int = 5, ridge: float = 1e-10):
     residual `|fun(x) - x|` is at most `tol` times `|init|`.
 
     **Returns:** `fun(x)` at the last iterate (tuple of arrays), iterations
-    (evaluations of `fun`), relative residual."""
+    (evaluations of `fun`), relative residual.
+
+    Not `jaxopt.AndersonAcceleration`: measured on the 642-patch furnace (tol 1e-12), it reaches the same B
+    (1.5e-12) but, jitted with `F @ b` as a `pure_callback`, takes 82 iterations and 2 s (a compile per
+    solve) against 11 and 0.02 s here; unjitted (host `F @ b` as is) it is ~300x slower per iteration."""
     shapes = [np.shape(a) for a in init]
     x = [np.asarray(a).ravel() for a in init]
     scale = float(np.sqrt(sum(float(np.dot(a, a)) for a in x))) + 1e-30

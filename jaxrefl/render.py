@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import srgb
 from .raycast import Hits, RayCaster
 from .rig import PinholeCamera
 from .status import STATUS_NAMES, Status
@@ -94,8 +95,7 @@ def to_srgb8(linear: np.ndarray, exposure: float | None = None, background=(0, 0
         top = np.percentile(img[finite], 99.5) if np.any(finite) else 1.0
         exposure = 1.0 / top if top > 0 else 1.0
     x = np.clip(np.where(finite[..., None], img, 0.0) * exposure, 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    out = np.round(srgb * 255).astype(np.uint8)
+    out = srgb.from_linear8(x)
     out[~finite] = background
     return out
 

@@ -14,7 +14,8 @@ from PIL import Image
 
 from data_synth.objects import make_object
 from jaxrefl import brdf, render
-from jaxrefl.ingest import DISTANT, bilinear, ingest, read_image, srgb_to_linear, undistort, write_png
+from jaxrefl import srgb
+from jaxrefl.ingest import DISTANT, bilinear, ingest, read_image, undistort, write_png
 from jaxrefl.io import ScanError
 from jaxrefl.raycast import RayCaster
 from jaxrefl.rig import PinholeCamera, observation_geometry
@@ -181,17 +182,17 @@ def test_8bit_srgb_photographs_agree_within_quantisation(capture, tmp_path):
     rig = dict(capture["rig"], transfer="srgb")
     for k, img in enumerate(capture["images"]):
         lin = np.clip(img * capture["scale"], 0, 1)
-        srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+        enc = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
         # Written by Pillow, whose rows use the Sub, Up and Paeth filters.
-        Image.fromarray(np.round(srgb * 255).astype(np.uint8)).save(folder / f"img{k}.png")
+        Image.fromarray(np.round(enc * 255).astype(np.uint8)).save(folder / f"img{k}.png")
         rig["images"][k] = {"file": f"img{k}.png", "exposure": capture["scale"]}
     (folder / "rig.json").write_text(json.dumps(rig))
     exact, quantised = ingest(capture["folder"]), ingest(folder)
     assert np.array_equal(exact.valid, quantised.valid)
     # Half a code in sRGB moves linear by at most (dlinear/dsrgb) * 0.5 / 255 at each corner pixel.
     lin = exact.radiance * capture["scale"]
-    srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
-    slope = np.where(srgb <= 0.04045, 1 / 12.92, 2.4 / 1.055 * ((srgb + 0.055) / 1.055) ** 1.4)
+    enc = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+    slope = np.where(enc <= 0.04045, 1 / 12.92, 2.4 / 1.055 * ((enc + 0.055) / 1.055) ** 1.4)
     bound = (slope * 0.5 / 255 + 2e-3 * lin + 1e-5) / capture["scale"]
     v = exact.valid
     assert np.all(np.abs(quantised.radiance - exact.radiance)[v] <= bound[v])
@@ -281,15 +282,44 @@ def test_png_writer_round_trips_and_pillow_agrees(tmp_path):
     Image.fromarray(rgb8).save(tmp_path / "p.png")
     values, top = read_image(tmp_path / "p.png")
     assert top == 255 and np.array_equal(np.round(values * 255).astype(np.uint8), rgb8)
-    Image.fromarray(rgb8[..., 0]).convert("P").save(tmp_path / "pal.png")  # palette: through Pillow
+    Image.fromarray(rgb8[..., 0]).convert("P").save(tmp_path / "pal.png")  # palette: as RGB
     assert read_image(tmp_path / "pal.png")[0].shape == (20, 30, 3)
     with pytest.raises(ValueError, match="uint8 or uint16"):
         write_png(tmp_path / "x.png", rgb16.astype(np.float32))
 
 
-def test_srgb_decoding_and_undistortion():
-    np.testing.assert_allclose(srgb_to_linear([0.0, 0.04045, 0.5, 1.0]),
+def test_16bit_rgb_png_keeps_every_bit(tmp_path):
+    """Pillow and imageio read 16-bit colour PNGs as 8 bits; ours must keep all 16."""
+    codes = np.array([0, 1, 255, 256, 257, 4095, 32767, 32768, 65279, 65534, 65535], np.uint16)
+    rgb16 = np.stack([codes, codes[::-1], np.roll(codes, 3)], -1).reshape(1, -1, 3).repeat(4, 0)
+    rgb16[1::2] ^= 0x00FF  # flip low bytes on alternate rows: lost to any 8-bit path
+    write_png(tmp_path / "a.png", rgb16)
+    header = (tmp_path / "a.png").read_bytes()[:29]
+    assert header[12:16] == b"IHDR" and header[24:26] == bytes([16, 2])  # 16-bit, colour type RGB
+    values, top = read_image(tmp_path / "a.png")
+    assert top == 65535 and values.shape == rgb16.shape
+    np.testing.assert_array_equal(values * 65535, rgb16.astype(np.float64))
+    (tmp_path / "bad.png").write_bytes(header + b"\0" * 20)
+    with pytest.raises(ValueError, match="corrupt PNG"):
+        read_image(tmp_path / "bad.png")
+
+
+def test_srgb_curve_known_values_and_round_trip():
+    np.testing.assert_allclose(srgb.to_linear([0.0, 0.04045, 0.5, 1.0]),
                                [0.0, 0.04045 / 12.92, 0.21404114, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(srgb.from_linear([0.0, 0.0031308, 0.21404114, 1.0, 2.0, -1.0]),
+                               [0.0, 0.0031308 * 12.92, 0.5, 1.0, 1.0, 0.0], rtol=1e-6)
+    # The two pieces meet at the knee (continuous to 1e-7 either side), any shape goes through.
+    knee = srgb.to_linear([0.04045 - 1e-12, 0.04045 + 1e-12])
+    assert abs(knee[1] - knee[0]) < 1e-7
+    x = np.random.default_rng(6).uniform(0, 1, (4, 5, 3))
+    assert srgb.to_linear(x).shape == x.shape
+    np.testing.assert_allclose(srgb.from_linear(srgb.to_linear(x)), x, atol=1e-12)
+    codes = np.arange(256, dtype=np.uint8)
+    np.testing.assert_array_equal(srgb.from_linear8(srgb.to_linear(codes / 255)), codes)
+
+
+def test_undistortion():
     cam = PinholeCamera.look_at([0.1, 0.2, 1.0], [0.0, 0.0, 0.0], width=400, height=300, fov_deg=50)
     cam = PinholeCamera(K=cam.K, R=cam.R, t=cam.t, width=400, height=300,
                         dist=np.array([-0.25, 0.08, 0.001, -0.002, -0.01]))
