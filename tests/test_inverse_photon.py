@@ -37,7 +37,7 @@ def _rel(est, scan, mask=None):
     return rel[est.pd_measured if mask is None else mask & est.pd_measured]
 
 
-@pytest.mark.parametrize("solver", ["lm", "simplex"])
+@pytest.mark.parametrize("solver", ["lm", pytest.param("simplex", marks=pytest.mark.slow)])
 def test_convex_object_matches_truth_and_method_one(convex, solver):
     """Without interreflections the photon map adds (almost) nothing: Method III's pd
     equals the truth to the noise and agrees with Method I; the image difference is

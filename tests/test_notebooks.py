@@ -43,7 +43,12 @@ def test_figure_writers_leave_the_backend_alone(tmp_path):
         matplotlib.use(before)
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+#: Notebooks whose run takes minutes on two cores (Method III's iterations): the slow profile.
+SLOW = {"04_photons_iterations"}
+
+
+@pytest.mark.parametrize("path", [pytest.param(p, marks=pytest.mark.slow) if p.stem in SLOW else p
+                                  for p in NOTEBOOKS], ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs_and_draws(path, tmp_path, monkeypatch):
     nb = nbformat.read(path, as_version=4)
     nbformat.validate(nb)
