@@ -656,7 +656,7 @@ def _json_default(o):
 def _sanitise(obj):
     """NaN / inf -> None, recursively (strict JSON)."""
     if isinstance(obj, dict):
-        return {k: _sanitise(v) for k, v in obj.items()}
+        return {str(k): _sanitise(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_sanitise(v) for v in obj]
     if isinstance(obj, (float, np.floating)):

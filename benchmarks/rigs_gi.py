@@ -56,7 +56,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-from benchmarks.rigs import _err_string, _finite  # noqa: E402
+from benchmarks.rigs import _err_string, _finite, _json_default, _sanitise  # noqa: E402
 
 METHODS = ("I", "II", "III", "auto")
 DEFAULTS = "III defaults"  # Method III at `PhotonOptions()` (1M photons, 50 iterations), run once, no target
@@ -435,24 +435,6 @@ def write_report(records, run, out, json_out=True):
     if json_out:
         payload = {**run, "targets": TARGETS, "checks": checks, "cells": records}
         out.with_suffix(".json").write_text(json.dumps(_sanitise(payload), indent=1, default=_json_default) + "\n")
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
-
-
-def _sanitise(obj):
-    if isinstance(obj, dict):
-        return {str(k): _sanitise(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_sanitise(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return _finite(obj)
-    return obj
 
 
 def render_report(json_path, out):
