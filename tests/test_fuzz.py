@@ -21,25 +21,18 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import jaxrefl
-from data_synth.scans import Sensor, make_scan
 from jaxrefl import brdf, cli
 from jaxrefl.checks import ObservationError
 from jaxrefl.export import load_ply
 from jaxrefl.io import ScanError, save_scan, validate_scan
 from jaxrefl.result import check_estimate, load_result
 
-from .test_checks import LIGHTS, rendered, scaled
+from .test_checks import LIGHTS, rendered, scaled, vase  # noqa: F401 (vase: the shared fixture)
 
 QUICK = settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck))
 MANY = settings(max_examples=1000, deadline=None, suppress_health_check=list(HealthCheck))
 QUICK_SCANS = settings(max_examples=4, deadline=None, suppress_health_check=list(HealthCheck))
 MANY_SCANS = settings(deadline=None, suppress_health_check=list(HealthCheck))
-
-
-@pytest.fixture(scope="module")
-def vase():
-    scan, _ = make_scan("V", resolution=16, lights=LIGHTS, sensor=Sensor(noise=0.01, bits=12))
-    return scan
 
 
 @pytest.fixture(scope="module")
