@@ -36,14 +36,15 @@ import time
 import numpy as np
 
 from data_synth.scans import Sensor, apply_sensor, make_scan
-from jaxrefl import auto, formfactors
-from jaxrefl.classify import classify_scan
-from jaxrefl.io import validate_scan
-from jaxrefl.lights import select_lights
-from jaxrefl.local import LocalOptions, estimate_local
-from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
-from jaxrefl.raycast import RayCaster
+from jaxrefl.capture.select import select_lights
+from jaxrefl.geometry import formfactors
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods import auto
+from jaxrefl.methods.local import LocalOptions, estimate_local
+from jaxrefl.methods.radiosity import RadiosityOptions, estimate_radiosity
+from jaxrefl.reflectance.classify import classify_scan
 from jaxrefl.result import truth_errors
+from jaxrefl.scan.io import validate_scan
 
 E_TILT = 25.0  # degrees about x (as the Method III tests): E's highlights land inside the rack's reach
 
@@ -117,7 +118,7 @@ def run_scene(scene: Scene, args, tmp) -> dict:
                "radiosity": lambda c: estimate_radiosity(scan, RadiosityOptions(local=local_opts), c)}
     have_photon, why = auto.photon_available(scene.model)
     if have_photon and (scene.name in args.photon_objects or "all" in args.photon_objects):
-        from jaxrefl.inverse_photon import PhotonOptions, estimate_photon
+        from jaxrefl.methods.inverse_photon import PhotonOptions, estimate_photon
 
         runners["photon"] = lambda c: estimate_photon(scan, PhotonOptions(local=local_opts, **photon_kw), c)
     else:
@@ -479,7 +480,7 @@ def report(rows, args, model, seconds, calibration=None) -> str:
         lines.append(f"| {r['scene']} | " + " | ".join(cell(k) for k in ("mass", "gain_diffuse", "gain_specular",
                                                                           "rel_std_pd", "rel_std_ps")) + " |")
     lines += ["", "## Error model", "",
-              f"{'Fitted here (`--calibrate`)' if args.calibrate else 'In use (`jaxrefl.auto.ErrorModel`)'}: "
+              f"{'Fitted here (`--calibrate`)' if args.calibrate else 'In use (`jaxrefl.methods.auto.ErrorModel`)'}: "
               "`e = sqrt(noise^2 + bias^2 [+ photon_noise^2])` per method, (a, b) for pd and ps:", "",
               "| method | pd (a, b) | ps (a, b) |", "|---|---|---|"]
     for i, k in enumerate(auto.METHODS):

@@ -23,11 +23,11 @@ import numpy as np
 
 from benchmarks.inverse_photon_bench import _errors, _scan
 from data_synth.objects import fold_coordinate, make_object
-from jaxrefl import inverse_photon as ip
-from jaxrefl.final_gather import gather_rays
-from jaxrefl.local import prepare_rows
-from jaxrefl.photon import PhotonReplay
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods import inverse_photon as ip
+from jaxrefl.methods.final_gather import gather_rays
+from jaxrefl.methods.local import prepare_rows
+from jaxrefl.methods.photon import PhotonReplay
 
 
 def oracle(scan, near, far, settings):

@@ -33,12 +33,12 @@ import numpy as np
 
 from data_synth.objects import fold_coordinate, make_object
 from data_synth.scans import Sensor, make_scan
-from jaxrefl.classify import classify_scan
-from jaxrefl.inverse_photon import PhotonOptions, estimate_photon
-from jaxrefl.lights import select_lights
-from jaxrefl.local import LocalOptions, estimate_local
-from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
-from jaxrefl.reports import fold_profile
+from jaxrefl.capture.select import select_lights
+from jaxrefl.methods.inverse_photon import PhotonOptions, estimate_photon
+from jaxrefl.methods.local import LocalOptions, estimate_local
+from jaxrefl.methods.radiosity import RadiosityOptions, estimate_radiosity
+from jaxrefl.paper.reports import fold_profile
+from jaxrefl.reflectance.classify import classify_scan
 
 TILT = (25.0, 0.0)
 PAPER_LIGHTS = [50, 54, 56, 57, 53, 52, 0, 9, 40, 49, 58, 59]
@@ -124,7 +124,7 @@ def paper_point(resolution, photons, iterations):
 def speed_error_plot(res, path):
     """Errors and seconds against photons per light (20 iterations, lm), the iteration
     and solver settings beside them, and the paper's point on the seconds axis."""
-    from jaxrefl.render import new_figure
+    from jaxrefl.outputs.render import new_figure
 
     rows = res["glossy"]["rows"]
     sweep = sorted((r for r in rows if r.get("iterations") == 20 and r.get("solver") == "lm"),

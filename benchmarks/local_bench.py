@@ -107,9 +107,9 @@ def _write_section(path, text, quality):
 
 def _coverage(lines):
     from data_synth.scans import Sensor, make_scan
-    from jaxrefl.classify import T_SPEC, classify_scan
-    from jaxrefl.lights import select_lights
-    from jaxrefl.local import MEASURED, estimate_local
+    from jaxrefl.capture.select import select_lights
+    from jaxrefl.methods.local import MEASURED, estimate_local
+    from jaxrefl.reflectance.classify import T_SPEC, classify_scan
 
     plan, _ = make_scan("V", resolution=64)
     m = classify_scan(plan, use_observations=False)
@@ -160,9 +160,9 @@ def _coverage(lines):
 def _fold(lines):
     from data_synth.objects import fold_coordinate
     from data_synth.scans import make_scan
-    from jaxrefl.classify import T_DIFF
-    from jaxrefl.local import estimate_local, prepare_rows
-    from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
+    from jaxrefl.methods.local import estimate_local, prepare_rows
+    from jaxrefl.methods.radiosity import RadiosityOptions, estimate_radiosity
+    from jaxrefl.reflectance.classify import T_DIFF
 
     edges = [0.0, 0.01, 0.02, 0.04, 0.08, 0.12, 0.201]
     lines += [
@@ -203,9 +203,9 @@ def _pool(lines):
     import dataclasses
 
     from data_synth.scans import Sensor, apply_sensor, direct_radiance, make_scan
-    from jaxrefl.classify import classify_scan
-    from jaxrefl.lights import select_lights
-    from jaxrefl.local import LocalOptions, estimate_local, fit_rows, prepare_rows, quantisation_step
+    from jaxrefl.capture.select import select_lights
+    from jaxrefl.methods.local import LocalOptions, estimate_local, fit_rows, prepare_rows, quantisation_step
+    from jaxrefl.reflectance.classify import classify_scan
 
     plan, _ = make_scan("V", resolution=64)
     m = classify_scan(plan, use_observations=False)
@@ -278,8 +278,16 @@ def quality(out):
 def main(argv=None):
     import jax.numpy as jnp
 
-    from jaxrefl.local import (LocalOptions, _chunked, _diffuse_init, _fit, _noise_weights, _posterior_lobes,
-                               _specular_init, fit_rows)
+    from jaxrefl.methods.local import (
+        LocalOptions,
+        _chunked,
+        _diffuse_init,
+        _fit,
+        _noise_weights,
+        _posterior_lobes,
+        _specular_init,
+        fit_rows,
+    )
     from tests.test_local import synthetic_rows
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -2,7 +2,7 @@
 
 Run: `python -m benchmarks.measurability_bench [--points 100000] [--repeats 3]`.
 
-Times `jaxrefl.classify.classify` on ~100k points x 60 candidate lights of
+Times `jaxrefl.reflectance.classify.classify` on ~100k points x 60 candidate lights of
 Object A under the paper's scanner, stage by stage, and a baseline written the
 way one would without jaxrefl in the same run: a Python loop over the 60
 lights, trimesh's Embree wrapper for the camera and shadow rays, NumPy
@@ -71,9 +71,9 @@ def main(argv=None):
     import trimesh
 
     from data_synth.objects import make_object
-    from jaxrefl.classify import classify
-    from jaxrefl.raycast import RayCaster
-    from jaxrefl.rig import CylindricalScanner, observation_angles
+    from jaxrefl.geometry.raycast import RayCaster
+    from jaxrefl.geometry.rig import CylindricalScanner, observation_angles
+    from jaxrefl.reflectance.classify import classify
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=100_000, help="approximate number of surface points")

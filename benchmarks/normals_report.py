@@ -38,7 +38,7 @@ import time
 import numpy as np
 
 from data_synth.rangescan import make_range_image
-from jaxrefl.preprocess import (
+from jaxrefl.scan.preprocess import (
     angular_error_deg,
     face_averaged_normals,
     mesh_quadratic_normals,

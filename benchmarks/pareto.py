@@ -153,9 +153,9 @@ def build_scene(label: str, cfg) -> dict:
 
 
 def _runner(s: Setting, scan):
-    from jaxrefl import auto
-    from jaxrefl.local import LocalOptions, estimate_local
-    from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
+    from jaxrefl.methods import auto
+    from jaxrefl.methods.local import LocalOptions, estimate_local
+    from jaxrefl.methods.radiosity import RadiosityOptions, estimate_radiosity
 
     local = LocalOptions(model=s.model)
     if s.method == "local":
@@ -163,7 +163,7 @@ def _runner(s: Setting, scan):
     if s.method == "radiosity":
         return lambda c: estimate_radiosity(scan, RadiosityOptions(local=local), c)
     if s.method == "photon":
-        from jaxrefl.inverse_photon import PhotonOptions, estimate_photon
+        from jaxrefl.methods.inverse_photon import PhotonOptions, estimate_photon
 
         opts = PhotonOptions(photons=s.photons, iterations=s.iterations, solver=s.solver, local=local)
         return lambda c: estimate_photon(scan, opts, c)
@@ -176,7 +176,7 @@ def _runner(s: Setting, scan):
 
 def measure(scene: dict, s: Setting, repeats: int, tmp: str) -> dict:
     """First call and `repeats` warm calls of setting `s` on `scene`: seconds and errors."""
-    from jaxrefl.raycast import RayCaster
+    from jaxrefl.geometry.raycast import RayCaster
 
     scan = scene["scan"]
     if s.half:

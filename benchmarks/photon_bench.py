@@ -44,7 +44,7 @@ def _load():
 
 def _setup(setup, resolution, n_pick, seed=0):
     from data_synth.objects import fold_coordinate, make_object
-    from jaxrefl.raycast import RayCaster
+    from jaxrefl.geometry.raycast import RayCaster
 
     obj = make_object("E", resolution, setup)
     s, x = fold_coordinate(obj.vertices), obj.vertices[:, 0]
@@ -90,7 +90,7 @@ def _score(runs, ref, ref_se, region_means=None):
 
 
 def convergence(setup, photon_counts, targets, resolution, n_pick, ref_samples, seeds):
-    from jaxrefl.photon import PhotonReplay
+    from jaxrefl.methods.photon import PhotonReplay
 
     obj, caster, pick = _setup(setup, resolution, n_pick)
     params = (obj.pd, obj.ps, obj.roughness)
@@ -118,8 +118,8 @@ def convergence(setup, photon_counts, targets, resolution, n_pick, ref_samples, 
 def furnace(rhos, photon_counts):
     import trimesh
 
-    from jaxrefl.mesh import vertex_areas
-    from jaxrefl.photon import PhotonReplay
+    from jaxrefl.geometry.mesh import vertex_areas
+    from jaxrefl.methods.photon import PhotonReplay
 
     s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
     v, f = np.asarray(s.vertices), np.asarray(s.faces)[:, ::-1]
@@ -144,7 +144,7 @@ def furnace(rhos, photon_counts):
 
 
 def replay_check(resolution, n_photons):
-    from jaxrefl.photon import PhotonReplay
+    from jaxrefl.methods.photon import PhotonReplay
 
     obj, caster, pick = _setup("glossy", resolution, 10**9)
     n = len(obj.vertices)
@@ -196,7 +196,7 @@ def replay_check(resolution, n_photons):
 def _final_gather(obj, caster, replay, rays, seed):
     """Diffuse final gather at every vertex: `rays` cosine-sampled rays; the radiance
     seen at each hit is exact direct light plus the photon map's incident flux."""
-    from jaxrefl.photon import _normalize
+    from jaxrefl.methods.photon import _normalize
 
     rng = np.random.default_rng(seed)
     v, nrm, faces = obj.vertices, obj.normals, obj.faces
@@ -235,7 +235,7 @@ def _final_gather(obj, caster, replay, rays, seed):
 
 
 def final_gather(resolution, n_pick, ref_samples, photon_counts, gather_rays, seeds):
-    from jaxrefl.photon import PhotonReplay
+    from jaxrefl.methods.photon import PhotonReplay
 
     obj, caster, pick = _setup("diffuse", resolution, n_pick)
     params = (obj.pd, obj.ps, obj.roughness)
@@ -260,9 +260,9 @@ def final_gather(resolution, n_pick, ref_samples, photon_counts, gather_rays, se
 def speed(resolution, n_lights, n_photons, repeats):
     from data_synth.objects import make_object
     from data_synth.scans import make_rig
-    from jaxrefl.photon import PhotonReplay
-    from jaxrefl.raycast import RayCaster
-    from jaxrefl.rig import paper_light_rack
+    from jaxrefl.geometry.raycast import RayCaster
+    from jaxrefl.geometry.rig import paper_light_rack
+    from jaxrefl.methods.photon import PhotonReplay
 
     obj = make_object("E", resolution, "glossy")
     v, f = obj.vertices, obj.faces
@@ -275,7 +275,7 @@ def speed(resolution, n_lights, n_photons, repeats):
     params = (obj.pd, obj.ps, obj.roughness)
     # Raw Embree reference in this process: the first light's emission rays (as the
     # tracer makes them), single-threaded, on the same scene.
-    from jaxrefl.photon import _emit
+    from jaxrefl.methods.photon import _emit
 
     _, d, _ = _emit(caster, np.random.default_rng(0), lights[0], n_photons, np.float32)
     d = np.ascontiguousarray(d.T)

@@ -43,11 +43,16 @@ def main(argv=None):
 
     from data_synth.objects import make_object
     from data_synth.scans import make_scan
-    from jaxrefl import formfactors as ffm
-    from jaxrefl.local import prepare_rows
-    from jaxrefl.classify import T_DIFF
-    from jaxrefl.radiosity import direct_irradiance, first_bounce_correction, inverse_radiosity, light_configs
-    from jaxrefl.raycast import RayCaster
+    from jaxrefl.geometry import formfactors as ffm
+    from jaxrefl.geometry.raycast import RayCaster
+    from jaxrefl.methods.local import prepare_rows
+    from jaxrefl.methods.radiosity import (
+        direct_irradiance,
+        first_bounce_correction,
+        inverse_radiosity,
+        light_configs,
+    )
+    from jaxrefl.reflectance.classify import T_DIFF
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--resolution", type=int, default=98)

@@ -1,4 +1,4 @@
-"""Embree ray throughput of `jaxrefl.raycast` relative to raw embreex, same rays, same run.
+"""Embree ray throughput of `jaxrefl.geometry.raycast` relative to raw embreex, same rays, same run.
 
 What: on a procedural mesh (Object A by default) we trace two ray sets that matter to the
 pipeline: (a) shadow segments from mesh vertices to every light of the
@@ -37,8 +37,8 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from data_synth.objects import make_object
-from jaxrefl.raycast import RayCaster, default_threads
-from jaxrefl.rig import CylindricalScanner
+from jaxrefl.geometry.raycast import RayCaster, default_threads
+from jaxrefl.geometry.rig import CylindricalScanner
 
 
 def _median_time(fn, repeats: int) -> tuple[float, object]:
@@ -211,7 +211,7 @@ def run(n_rays: int, repeats: int, obj_name: str, resolution: int, seed: int) ->
                      f"{t_ref / t:.2f} | {agree:.6f} |")
 
     header = [
-        "# Ray-casting throughput: `jaxrefl.raycast` vs raw embreex",
+        "# Ray-casting throughput: `jaxrefl.geometry.raycast` vs raw embreex",
         "",
         f"- Date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         f"- Machine: os.cpu_count()={os.cpu_count()}, {platform.platform()}, "

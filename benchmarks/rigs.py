@@ -69,7 +69,7 @@ TARGETS = {"pd": 0.01, "ps": 0.05, "roughness": 0.05, "truth_floor": 1.5, "refer
 
 
 def _options(model, variant):
-    from jaxrefl.local import LocalOptions
+    from jaxrefl.methods.local import LocalOptions
 
     if variant == "prior":
         return LocalOptions(model=model, prior=True)
@@ -140,7 +140,7 @@ def parameter_errors(est, fit_scan, visible, observed) -> dict:
 def calibration(est, fit_scan, matched) -> dict:
     """Share of points with |est - truth| <= std for ps and roughness, per status name
     (points with a finite std only; matched model only)."""
-    from jaxrefl.local import STATUS_NAMES
+    from jaxrefl.methods.local import STATUS_NAMES
 
     if not matched or fit_scan.true_ps is None:
         return {}
@@ -165,14 +165,14 @@ def calibration(est, fit_scan, matched) -> dict:
 
 def coverage(est, where=None) -> dict:
     """Share of the points (of `where`, default all) per status name."""
-    from jaxrefl.local import STATUS_NAMES
+    from jaxrefl.methods.local import STATUS_NAMES
 
     status = est.status if where is None else est.status[where]
     return {name: float(np.mean(status == code)) if status.size else None for code, name in enumerate(STATUS_NAMES)}
 
 
 def _holdout(est, test_scan, caster) -> dict:
-    from jaxrefl.holdout import holdout_error
+    from jaxrefl.outputs.holdout import holdout_error
 
     h = holdout_error(est, test_scan, caster, gi="none")
     out = {"rel_rms": h["rel_rms"], "median_rel": h["median_rel"], "samples": h["samples"]}
@@ -202,7 +202,7 @@ def visible_lobes(scan, info, fit_lights) -> np.ndarray:
 def noise_floor(scan, test_scan, info, held, caster) -> dict:
     """Held-out rel-RMS of the noise-free truth render against the recorded radiance over the
     samples `holdout_error` compares (classified measurable, observed)."""
-    from jaxrefl.classify import classify
+    from jaxrefl.reflectance.classify import classify
 
     use = classify(test_scan.vertices, test_scan.normals, test_scan.cam_pos, test_scan.light_pos, caster,
                    observed=test_scan.observed()).measurable
@@ -214,7 +214,7 @@ def noise_floor(scan, test_scan, info, held, caster) -> dict:
 
 
 def _estimate(model, pd, ps, rough, method):
-    from jaxrefl.local import Estimate
+    from jaxrefl.result import Estimate
 
     n = len(pd)
     inf = np.full(n, np.inf)
@@ -228,10 +228,16 @@ def plain_and_reference(fit_scan, rows, labels, n_materials, model, caster, test
     material, pd re-fitted per point) held-out errors and parameter estimates."""
     import jax.numpy as jnp
 
-    from jaxrefl import brdf
-    from jaxrefl import prior as prior_mod
-    from jaxrefl.fill import vertex_adjacency
-    from jaxrefl.local import LocalOptions, _refit_diffuse, fill_unobserved_pd, fit_rows, quantisation_step
+    from jaxrefl.methods.local import (
+        LocalOptions,
+        _refit_diffuse,
+        fill_unobserved_pd,
+        fit_rows,
+        quantisation_step,
+    )
+    from jaxrefl.reflectance import brdf
+    from jaxrefl.reflectance import prior as prior_mod
+    from jaxrefl.reflectance.fill import vertex_adjacency
 
     q = quantisation_step(fit_scan.radiance, rows["use"])
     t0 = time.perf_counter()
@@ -280,9 +286,9 @@ def run_cell(name, seed=0, n_points=None, fraction=0.25, models=MODELS, variants
     """Every measurement of one zoo cell (a JSON-ready dict; a failing variant or stage
     records `error` and the rest goes on)."""
     from data_synth import zoo
-    from jaxrefl.holdout import choose_holdout, split_scan, truth_holdout_error
-    from jaxrefl.local import estimate_local, prepare_rows
-    from jaxrefl.raycast import RayCaster
+    from jaxrefl.geometry.raycast import RayCaster
+    from jaxrefl.methods.local import estimate_local, prepare_rows
+    from jaxrefl.outputs.holdout import choose_holdout, split_scan, truth_holdout_error
 
     t_cell = time.perf_counter()
     spec = zoo.CELLS[name]

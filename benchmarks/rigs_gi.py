@@ -17,7 +17,7 @@ Per cell, on the whole scan (no held-out lights), Ward model throughout:
   photon={'photons': P, 'iterations': K}))`.
 
 Each method runs twice in a row on the same scan (one `RayCaster`): `s first` includes JAX
-compilation and the form-factor casts (cached in memory and on disk by `jaxrefl.formfactors`,
+compilation and the form-factor casts (cached in memory and on disk by `jaxrefl.geometry.formfactors`,
 so a later method or run may read them), `s warm` is the second run. The time targets
 compare warm runs.
 
@@ -177,10 +177,10 @@ def target_checks(rec) -> list[dict]:
 
 
 def _methods(photon):
-    from jaxrefl.auto import AutoOptions, estimate_auto
-    from jaxrefl.inverse_photon import PhotonOptions, estimate_photon
-    from jaxrefl.local import LocalOptions, estimate_local
-    from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
+    from jaxrefl.methods.auto import AutoOptions, estimate_auto
+    from jaxrefl.methods.inverse_photon import PhotonOptions, estimate_photon
+    from jaxrefl.methods.local import LocalOptions, estimate_local
+    from jaxrefl.methods.radiosity import RadiosityOptions, estimate_radiosity
 
     ward = LocalOptions(model="ward")
     return {
@@ -215,7 +215,7 @@ def _method_meta(est) -> dict:
 def run_cell(name, seed=0, n_points=None, photon=None, methods=METHODS, repeat=True, log=print) -> dict:
     """Every measurement of one GI cell (JSON-ready; a failing method records `error`)."""
     from data_synth import zoo
-    from jaxrefl.raycast import RayCaster
+    from jaxrefl.geometry.raycast import RayCaster
 
     photon = dict(photons=PHOTONS, iterations=ITERATIONS) if photon is None else dict(photon)
     t_cell = time.perf_counter()

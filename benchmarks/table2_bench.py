@@ -21,7 +21,7 @@ estimate, under the capture lights. Here, per object:
   lights, toward its camera): the direct term (Ward BRDF x `Y cos_i / C^2`, an
   Embree shadow ray: what `relight.direct_radiance` computes for one light,
   here per observation because the scanner's lights ride its head) plus
-  interreflection as Method III models it and `photon.relight_indirect`
+  interreflection as Method III models it and `final_gather.relight_indirect`
   renders it: the first bounce gathered from every observation
   (`final_gather.gather_rays` / `gather_parts`, rays drawn from and weighted
   by the reflectance being rendered), the later bounces from a photon map
@@ -58,16 +58,16 @@ import numpy as np
 
 from benchmarks.auto_bench import E_TILT, Scene, make_scene
 from data_synth.scans import make_scan
-from jaxrefl import brdf
-from jaxrefl.classify import T_DIFF, T_NONE, T_SPEC
-from jaxrefl.final_gather import gather_parts, gather_rays
-from jaxrefl.inverse_photon import ALPHA_RANGE, PhotonOptions, estimate_photon
-from jaxrefl.local import LocalOptions, prepare_rows
-from jaxrefl.photon import PhotonReplay
-from jaxrefl.radiosity import RadiosityOptions, config_cameras, estimate_radiosity, light_configs
-from jaxrefl.raycast import RayCaster
-from jaxrefl.relight import truth_estimate
-from jaxrefl.rig import observation_geometry
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.geometry.rig import observation_geometry
+from jaxrefl.methods.final_gather import gather_parts, gather_rays
+from jaxrefl.methods.inverse_photon import ALPHA_RANGE, PhotonOptions, estimate_photon
+from jaxrefl.methods.local import LocalOptions, prepare_rows
+from jaxrefl.methods.photon import PhotonReplay
+from jaxrefl.methods.radiosity import RadiosityOptions, config_cameras, estimate_radiosity, light_configs
+from jaxrefl.outputs.relight import truth_estimate
+from jaxrefl.reflectance import brdf
+from jaxrefl.reflectance.classify import T_DIFF, T_NONE, T_SPEC
 
 OBJECTS = ("A", "B", "C", "D")
 SETUPS = ("glossy", "glazed")
@@ -400,7 +400,7 @@ def report(rows, args, wall, load_before, load_after, fig_path) -> str:
               "the final gather, 256 rays per observation capped by its budget of 8M rays).",
               f"- Re-rendering: every observed sample (point x capture light, valid, not saturated) = direct "
               f"(Ward, shadow ray, the observation's own light and camera) + interreflection as Method III models "
-              f"it and `photon.relight_indirect` renders it: the first bounce gathered from the observation by "
+              f"it and `final_gather.relight_indirect` renders it: the first bounce gathered from the observation by "
               f"{args.gather_rays} rays (`final_gather.gather_rays` / `gather_parts`, drawn from and weighted by the "
               f"reflectance being rendered), the later bounces from a photon map ({args.render_photons:,} photons "
               f"per light, `PhotonReplay.build(..., first_bounce=False)` + `indirect`, shared by the light "

@@ -25,10 +25,10 @@ import numpy as np
 
 from benchmarks.auto_bench import Scene, make_scene
 from benchmarks.table2_bench import difference_stats, direct_observations, indirect_observations, rerender
-from jaxrefl import inverse_photon
-from jaxrefl.local import estimate_local, prepare_rows
-from jaxrefl.raycast import RayCaster
-from jaxrefl.relight import truth_estimate
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods import inverse_photon
+from jaxrefl.methods.local import estimate_local, prepare_rows
+from jaxrefl.outputs.relight import truth_estimate
 
 _noise_weights = inverse_photon._noise_weights
 

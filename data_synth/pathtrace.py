@@ -3,7 +3,7 @@
 This is the reference for global illumination in the synthetic scans. It
 shares nothing with jaxrefl's estimators or their fast approximations: its
 BRDFs are written out again here in NumPy (a test checks they agree with
-`jaxrefl.brdf`), and it only uses `jaxrefl.raycast` to ask Embree where rays go.
+`jaxrefl.reflectance.brdf`), and it only uses `jaxrefl.geometry.raycast` to ask Embree where rays go.
 
 For an observation (surface vertex x, camera c, point light at p with radiant
 intensity Y) it returns the radiance leaving x toward c:
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.raycast import RayCaster
 
 __all__ = ["Material", "brdf_numpy", "PathTracer"]
 

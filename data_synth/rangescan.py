@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxrefl.preprocess import RangeImage
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.scan.preprocess import RangeImage
 
 from .objects import make_object
 

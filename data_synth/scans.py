@@ -11,16 +11,15 @@ illumination by the independent path tracer, applies an optional sensor model
 from __future__ import annotations
 
 import dataclasses
-
 import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 import jaxrefl
-from jaxrefl.io import Scan, validate_scan
-from jaxrefl.raycast import RayCaster
-from jaxrefl.rig import CylindricalScanner, PinholeCamera, paper_light_rack
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.geometry.rig import CylindricalScanner, PinholeCamera, paper_light_rack
+from jaxrefl.scan.io import Scan, validate_scan
 
 from .objects import EXTRA_NAMES, OBJECT_NAMES, make_object
 from .pathtrace import Material, PathTracer
@@ -257,8 +256,8 @@ def direct_radiance(scan: Scan, pd, ps, sigma) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
-    from jaxrefl import brdf
-    from jaxrefl.rig import observation_geometry
+    from jaxrefl.geometry.rig import observation_geometry
+    from jaxrefl.reflectance import brdf
 
     g = observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)
     full, _ = brdf.MODELS["torrance-sparrow"]

@@ -41,7 +41,7 @@ Rigs (`RIGS`, each `fn(center, size, seed) -> RigSetup`; intensities are
   of +z at 2.5-4 object radii (`cam_pos` `(M, 3)`), flash strengths vary +-25 %.
 - `sparse`: one camera at 5 sizes, 6 lights 20/35 deg around it.
 
-BRDF families: `ward`, `torrance-sparrow` (`jaxrefl.brdf`, evaluated with
+BRDF families: `ward`, `torrance-sparrow` (`jaxrefl.reflectance.brdf`, evaluated with
 `data_synth.pathtrace.brdf_numpy`) and `ggx` (not fitted by jaxrefl): Lambert `pd / pi` plus
 the Walter et al. 2007 microfacet lobe `D F G / (4 cos_i cos_o)`: Trowbridge-Reitz `D`,
 Schlick Fresnel with RGB `f0`, separable Smith `G` (`ggx_brdf`).
@@ -65,9 +65,9 @@ import numpy as np
 import trimesh
 
 import jaxrefl
-from jaxrefl.io import Scan, validate_scan
-from jaxrefl.mesh import area_normal_sums
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.mesh import area_normal_sums
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.scan.io import Scan, validate_scan
 
 from .objects import make_object
 from .pathtrace import Material, PathTracer, brdf_numpy

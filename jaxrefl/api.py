@@ -10,13 +10,12 @@ takes exactly the fields `LocalOptions` does, and `estimate` accepts either spel
     est = jaxrefl.estimate(jaxrefl.load_scan("A.npz"), method=jaxrefl.Local())
     est = jaxrefl.estimate("E.npz", method=jaxrefl.Radiosity(rays=128), holdout=0.25)
 
-The command line (`jaxrefl estimate`, `jaxrefl batch`) goes through `estimate` too:
-`method_from_options` turns its options into a method.
+`estimate_to_file` runs `estimate` and writes the result file with a JSON summary
+(`estimate_summary`): the command line (`jaxrefl estimate`, `jaxrefl batch`) goes through it.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import sys
@@ -24,36 +23,38 @@ import time
 
 import numpy as np
 
-from . import checks
-from .auto import AutoOptions, estimate_auto
-from .holdout import choose_holdout, estimate_with_holdout
-from .inverse_photon import PhotonOptions, estimate_photon
-from .io import load_scan
-from .local import Estimate, LocalOptions, estimate_local
-from .radiosity import RadiosityOptions, estimate_radiosity
+from .methods.auto import AutoOptions, estimate_auto
+from .methods.inverse_photon import PhotonOptions, estimate_photon
+from .methods.local import LocalOptions, estimate_local
+from .methods.radiosity import RadiosityOptions, estimate_radiosity
+from .outputs.holdout import choose_holdout, estimate_with_holdout
+from .result import Estimate, save_result, truth_errors
+from .scan import checks
+from .scan.io import load_scan
+from .status import STATUS_NAMES, Status
 
-__all__ = ["Local", "Radiosity", "Photon", "Auto", "estimate", "method_from_options"]
+__all__ = ["Local", "Radiosity", "Photon", "Auto", "estimate", "estimate_to_file", "estimate_summary"]
 
 logger = logging.getLogger(__name__)
 
 
 class Local(LocalOptions):
-    """Method I, inverse local rendering (`jaxrefl.local`); the fields of `LocalOptions`."""
+    """Method I, inverse local rendering (`jaxrefl.methods.local`); the fields of `LocalOptions`."""
 
 
 class Radiosity(RadiosityOptions):
-    """Method II, inverse radiosity: diffuse interreflections removed (`jaxrefl.radiosity`);
+    """Method II, inverse radiosity: diffuse interreflections removed (`jaxrefl.methods.radiosity`);
     the fields of `RadiosityOptions`."""
 
 
 class Photon(PhotonOptions):
     """Method III, inverse photon mapping: diffuse and specular interreflections removed,
-    Ward model (`jaxrefl.inverse_photon`); the fields of `PhotonOptions`."""
+    Ward model (`jaxrefl.methods.inverse_photon`); the fields of `PhotonOptions`."""
 
 
 class Auto(AutoOptions):
     """The cheapest of Methods I-III predicted to meet `target_error`, per region
-    (`jaxrefl.auto`); the fields of `AutoOptions`."""
+    (`jaxrefl.methods.auto`); the fields of `AutoOptions`."""
 
 
 #: option class -> (name, estimator(scan, options, tick)); `tick(done, total)` reports
@@ -93,7 +94,7 @@ def estimate(scan, method=Local(), *, holdout=None, holdout_seed: int = 0, progr
     - `holdout`: None (fit on every light); a fraction in (0, 1) of the lights to hold
       out, drawn with `holdout_seed`; or a list of light indices. The estimate is fitted
       without them, relit under them and compared with their images: the error lands in
-      `est.meta['holdout']` (`jaxrefl.holdout`).
+      `est.meta['holdout']` (`jaxrefl.outputs.holdout`).
     - `progress`: a bar over the stages on stderr (Method III: with its iterations).
       None: only when stderr is a terminal.
 
@@ -156,33 +157,46 @@ def estimate(scan, method=Local(), *, holdout=None, holdout_seed: int = 0, progr
         bar.close()
 
 
-def method_from_options(options) -> LocalOptions | RadiosityOptions | PhotonOptions | AutoOptions:
-    """The method the `jaxrefl estimate` / `jaxrefl batch` options choose (`options` an
-    `argparse.Namespace` of them: `method`, `model`, `paper`, ... as the CLI names them,
-    dashes as underscores). Raises `ValueError` naming a bad option."""
-    o = options
-    local = Local(model=o.model, paper=o.paper, steps=o.steps, window=o.window, min_snr=o.min_snr,
-                  solver=o.solver, pool=o.pool, prior=getattr(o, "prior", True),
-                  materials=getattr(o, "materials", 6))
-    if local.materials < 1:
-        raise ValueError(f"materials: must be >= 1, got {local.materials}")
-    if o.rays < 1 or o.outer < 1 or not o.light_bin >= 0:
-        raise ValueError("rays, outer: must be >= 1; light-bin: must be >= 0")
-    radiosity = dict(rays=o.rays, light_bin=o.light_bin, outer=o.outer, paper=o.paper)
-    photon = {"photons": o.photons, "iterations": o.iterations, "solver": o.photon_solver,
-              "damping": o.damping, "retrace_ess": o.retrace_ess, "light_bin": o.light_bin,
-              "min_snr": o.min_snr, "window": o.window, "gather_rays": o.gather_rays,
-              "gather_budget": o.gather_budget, "min_fit_p": o.min_fit_p, "fill_sd": o.fill_sd,
-              "fill_pd_scale": o.fill_pd_scale, "fill_neighbours": o.fill_neighbours, "polish": o.polish}
-    if o.method == "radiosity":
-        return Radiosity(**radiosity, local=local)
-    if o.method == "photon":
-        return Photon(**photon, local=dataclasses.replace(local, model="ward"))
-    if o.method == "auto":
-        if not o.target_error >= 0 or not o.tolerance >= 0:
-            raise ValueError(f"target-error, tolerance: must be >= 0, got {o.target_error}, {o.tolerance}")
-        return Auto(target_error=o.target_error, tolerance=o.tolerance, local=local, photon=photon,
-                    radiosity=RadiosityOptions(**radiosity))
-    if o.method != "local":
-        raise ValueError(f"method: must be local, radiosity, photon or auto, got {o.method!r}")
-    return local
+def estimate_to_file(scan, out, method=Local(), *, holdout=None, holdout_seed: int = 0,
+                     progress: bool | None = None) -> dict:
+    """`estimate` of `scan` (a `Scan` or the path of a bundle) by `method`, written atomically to
+    the result file `out` (`save_result`); the JSON summary: `method`, `model`, `out`, the
+    `estimate_summary` and `warnings`. `jaxrefl estimate` and `jaxrefl batch` go through here."""
+    load_seconds = None
+    if isinstance(scan, (str, os.PathLike)):
+        t0 = time.perf_counter()
+        scan = load_scan(scan)
+        load_seconds = time.perf_counter() - t0
+    est = estimate(scan, method, holdout=holdout, holdout_seed=holdout_seed, progress=progress)
+    if load_seconds is not None:
+        est.meta["seconds"] = {"load": load_seconds, **est.meta["seconds"]}
+    save_result(out, est)
+    return {"method": est.meta.get("method"), "model": est.model, "out": str(out), **estimate_summary(est, scan),
+            "warnings": checks.estimate_warnings(est, log=None)}
+
+
+def estimate_summary(est: Estimate, scan) -> dict:
+    """Seconds per stage, coverage, status counts, what the method reports (materials, held-out
+    error, misfit, ...) and, where `scan` has ground truth, the errors of `est` (JSON-ready).
+
+    Coverage, one definition everywhere: `coverage` is the share of observed points (with a
+    usable sample) whose lobe is their own (`measured`); `known` the share whose lobe the data
+    determine (`measured` or `pooled`)."""
+    observed = max(int(est.pd_measured.sum()), 1)
+    summary = {
+        "seconds": est.meta["seconds"],
+        "points": int(len(est.status)),
+        "coverage": float(np.sum(est.pd_measured & (est.status == Status.MEASURED)) / observed),
+        "known": float(np.sum(est.pd_measured & np.isin(est.status, (Status.MEASURED, Status.POOLED))) / observed),
+        "status_counts": {name: int(np.sum(est.status == code)) for code, name in enumerate(STATUS_NAMES)},
+    }
+    summary.update({k: est.meta[k] for k in ("materials", "material_lobes", "outer_iterations", "form_factors",
+                                             "light_configurations", "image_difference", "best_iteration",
+                                             "retraces", "auto", "holdout", "misfit")
+                    if k in est.meta})
+    if "material_lobes" in summary:  # strict JSON: an unknown std or spread (inf) is null
+        summary["material_lobes"] = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                                      for k, v in lobe.items()} for lobe in summary["material_lobes"]]
+    if scan.true_pd is not None:
+        summary["errors"] = truth_errors(est, scan)
+    return summary

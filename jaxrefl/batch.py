@@ -14,13 +14,14 @@ damaged file removed first. `.lock` keeps a second batch out of the folder
 while one runs; temporaries left by a killed process are removed at the start
 and at the end of a batch.
 
-Each scan runs through `jaxrefl.cli.estimate_to_file`, the code path of
-`jaxrefl estimate`, with the same options (an `argparse.Namespace`).
+Each scan runs through `jaxrefl.api.estimate_to_file`, the code path of
+`jaxrefl estimate`, with one method (`jaxrefl.Local()`, `Radiosity()`, `Photon()` or `Auto()`).
 """
 
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 import os
@@ -30,7 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .io import atomic_write, folder_lock
+from .api import estimate_summary, estimate_to_file
+from .scan.io import atomic_write, folder_lock
 
 __all__ = ["Job", "find_scans", "plan_jobs", "result_loads", "run_job", "run_batch", "summary_table"]
 
@@ -126,19 +128,19 @@ def _write_json(path, record) -> None:
     atomic_write(path, lambda fh: fh.write(data))
 
 
-def run_job(job: Job, options, estimate=None) -> dict:
-    """Estimate one scan: write `job.result` (by `estimate(scan, out, options)`, default
-    `jaxrefl.cli.estimate_to_file`) then `job.summary`, both atomically; its record.
+def run_job(job: Job, method, estimate=None) -> dict:
+    """Estimate one scan: write `job.result` (by `estimate(scan, out, method)`, default
+    `jaxrefl.api.estimate_to_file`) then `job.summary`, both atomically; its record.
 
     Bad input (the bundle does not load or validate, bad options) gives a record with
     `status` 'failed' and the reason; any other exception propagates, so a cluster
     can retry it."""
     if estimate is None:
-        from .cli import estimate_to_file as estimate
+        estimate = functools.partial(estimate_to_file, progress=False)  # the batch has its own bar
 
     t0 = time.perf_counter()
     try:
-        summary = estimate(job.scan, job.result, options)
+        summary = estimate(job.scan, job.result, method)
     except INPUT_ERRORS as exc:
         return {"name": job.name, "scan": job.scan, "status": "failed", "error": _reason(exc),
                 "wall_seconds": time.perf_counter() - t0}
@@ -148,13 +150,13 @@ def run_job(job: Job, options, estimate=None) -> dict:
     return record
 
 
-def _remote_job(job: Job, options, estimate=None) -> dict:
+def _remote_job(job: Job, method, estimate=None) -> dict:
     """`run_job` on a cluster worker: with the XLA compilation cache a worker does not
     recompile what another process compiled before."""
     from .compile_cache import enable as _enable_compilation_cache
 
     _enable_compilation_cache()
-    return run_job(job, options, estimate)
+    return run_job(job, method, estimate)
 
 
 def _skipped_record(job: Job) -> dict:
@@ -166,9 +168,8 @@ def _skipped_record(job: Job) -> dict:
         if record.get("status") != "done":
             raise ValueError("summary: not a finished scan")
     except (OSError, ValueError):
-        from .cli import estimate_summary
-        from .io import load_scan
         from .result import load_result
+        from .scan.io import load_scan
 
         est = load_result(job.result)
         record = {"method": est.meta.get("method"), "model": est.model, "out": os.path.basename(job.result),
@@ -213,7 +214,7 @@ def _row(record) -> dict:
 
 def summary_table(records) -> tuple[str, str]:
     """(CSV text, Markdown text) of a batch: one row per scan. `coverage` (measured) and
-    `known` (measured or pooled) are shares of the observed points (`jaxrefl.cli.estimate_summary`).
+    `known` (measured or pooled) are shares of the observed points (`jaxrefl.api.estimate_summary`).
     Errors are median and 90th percentile relative errors against the scan's ground truth over
     measured points."""
     rows = [_row(r) for r in records]
@@ -241,18 +242,18 @@ def summary_table(records) -> tuple[str, str]:
     return buf.getvalue(), "\n".join(lines) + "\n"
 
 
-def run_batch(source, outdir, options, *, client=None, retries: int = 2, estimate=None,
+def run_batch(source, outdir, method, *, client=None, retries: int = 2, estimate=None,
               progress: bool = False) -> list[dict]:
     """Estimate every scan of `source` into `outdir`; one record per scan, in source order.
 
     **Arguments:** `source` a folder of bundles, a list file (see `find_scans`) or a
-    sequence of bundle paths; `options` the `jaxrefl estimate` options
-    (`argparse.Namespace`); `client` a `distributed.Client` to run the scans on a Dask
+    sequence of bundle paths; `method` the method of every scan (`jaxrefl.Local()`,
+    `Radiosity()`, `Photon()` or `Auto()`); `client` a `distributed.Client` to run the scans on a Dask
     cluster (the bundles and `outdir` must be at the same paths on every worker), None
     to run them one after another here; `retries` how often the cluster re-runs a scan
     that raised something other than bad input (a worker that dies is handled by the
-    scheduler's `allowed-failures`); `estimate` replaces `jaxrefl.cli.estimate_to_file`
-    (same signature); `progress` a tqdm bar.
+    scheduler's `allowed-failures`); `estimate` replaces `jaxrefl.api.estimate_to_file`
+    (called as `estimate(scan_path, out, method)`); `progress` a tqdm bar.
 
     **Returns:** records (`name`, `scan`, `status` 'done' | 'skipped' | 'failed',
     `wall_seconds`, and the estimate's summary or `error`); `summary.csv` and
@@ -282,7 +283,7 @@ def run_batch(source, outdir, options, *, client=None, retries: int = 2, estimat
             todo.append(job)
         bar = tqdm(total=len(jobs), initial=len(records), unit="scan", disable=not progress, desc="batch")
         try:
-            for job, record in _execute(todo, options, client, retries, estimate):
+            for job, record in _execute(todo, method, client, retries, estimate):
                 if record["status"] == "failed":
                     _write_json(job.summary, record)
                 records[job.name] = record
@@ -303,13 +304,13 @@ def _failed(job: Job, reason: str, t0: float | None) -> dict:
             "wall_seconds": None if t0 is None else time.perf_counter() - t0}
 
 
-def _execute(jobs, options, client, retries, estimate):
+def _execute(jobs, method, client, retries, estimate):
     """Yield `(job, record)` as scans finish: one after another here, or on `client`."""
     if client is None:
         for job in jobs:
             t0 = time.perf_counter()
             try:
-                yield job, run_job(job, options, estimate)
+                yield job, run_job(job, method, estimate)
             except Exception as exc:  # one scan's crash must not stop the others
                 yield job, _failed(job, _reason(exc), t0)
         return
@@ -318,7 +319,7 @@ def _execute(jobs, options, client, retries, estimate):
     # pure=False: every submission is a fresh task (a resumed batch must not reuse an old
     # key's state); the job itself is idempotent, so a re-run after a worker death
     # rewrites the same files by rename.
-    futures = {client.submit(_remote_job, job, options, estimate, pure=False, retries=retries,
+    futures = {client.submit(_remote_job, job, method, estimate, pure=False, retries=retries,
                              key=f"jaxrefl-batch-{job.name}-{os.urandom(6).hex()}"): job for job in jobs}
     for future in as_completed(futures):
         job = futures[future]

@@ -18,15 +18,80 @@ Format version 1 (`N` points):
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 
 import numpy as np
+from jaxtyping import Bool, Float, Int
 
-from .io import ScanError, atomic_write
-from .local import ROUGHNESS_NAME, STATUS_NAMES, Estimate
+from .scan.io import ScanError, atomic_write
+from .status import STATUS_NAMES, Status
 
-__all__ = ["RESULT_VERSION", "ResultError", "save_result", "load_result", "check_estimate", "truth_errors"]
+__all__ = ["Estimate", "ROUGHNESS_NAME", "RESULT_VERSION", "ResultError", "save_result", "load_result", "check_estimate", "truth_errors"]
 
 RESULT_VERSION = 1
+ROUGHNESS_NAME = {"torrance-sparrow": "sigma", "ward": "alpha"}  # the roughness key per model
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Per-point reflectance: `pd` `(N, 3)`, `ps` `(N,)`, `roughness` `(N,)`
+    [rad] (sigma or alpha, per `model`), `status` `(N,)` int8 (`Status` codes), standard
+    deviations `std_pd` `(N, 3)`, `std_ps`, `std_roughness` `(N,)`,
+    `specular_identifiable` `(N,)` bool (ps and roughness from the point's own
+    samples), `pd_measured` `(N,)` bool (the point had usable samples), and
+    `meta` (options, timings), and `material` `(N,)` int (the shared prior's material of
+    each point; None where no prior was fitted)."""
+
+    pd: Float[np.ndarray, "N 3"]
+    ps: Float[np.ndarray, "N"]
+    roughness: Float[np.ndarray, "N"]
+    status: Int[np.ndarray, "N"]
+    std_pd: Float[np.ndarray, "N 3"]
+    std_ps: Float[np.ndarray, "N"]
+    std_roughness: Float[np.ndarray, "N"]
+    specular_identifiable: Bool[np.ndarray, "N"]
+    pd_measured: Bool[np.ndarray, "N"]
+    model: str
+    meta: dict = field(default_factory=dict)
+    material: Int[np.ndarray, "N"] | None = None
+
+    # Conveniences, each delegating to the module that owns the work (imported late: those
+    # modules import this one).
+    @property
+    def seconds(self) -> dict:
+        """Seconds per stage (`meta['seconds']`, e.g. `classify`, `fit`, `fill`)."""
+        return dict(self.meta.get("seconds", {}))
+
+    def status_counts(self) -> dict:
+        """Points per `Status`: `{Status.MEASURED: n, ...}` (every member, 0 where none)."""
+        return {s: int(np.count_nonzero(self.status == s)) for s in Status}
+
+    def save(self, path) -> None:
+        """Write a result file atomically (`jaxrefl.result.save_result`; `load_result` reads it)."""
+        save_result(path, self)
+
+    def relight(self, scan, light_pos: Float[np.ndarray, "3"], intensity: float | None = None,
+                **kw) -> Float[np.ndarray, "H W 3"]:
+        """Linear image `(H, W, 3)` [W/(sr m^2)] of the object under a point light at
+        `light_pos` `(3,)` [m] (`jaxrefl.outputs.relight.relight_image`: `camera`, `model_gi`,
+        `width`, `height`); NaN off the object."""
+        from .outputs.relight import relight_image
+
+        return relight_image(self, scan, light_pos, intensity, **kw)
+
+    def to_ply(self, path, scan) -> None:
+        """Binary PLY of `scan`'s mesh with this result per vertex (`jaxrefl.outputs.export`)."""
+        from .outputs.export import export_ply
+
+        export_ply(path, scan.vertices, scan.faces, scan.normals, self)
+
+    def figure(self, scan=None, **kw):
+        """A matplotlib `Figure` (nothing written): the reflectance and status maps over
+        `scan`'s geometry, or without a scan histograms of pd, ps, roughness and the
+        status counts (`jaxrefl.outputs.render.estimate_figure`)."""
+        from .outputs.render import estimate_figure
+
+        return estimate_figure(self, scan, **kw)
 
 
 class ResultError(ScanError):
@@ -85,7 +150,7 @@ def check_estimate(est: Estimate, path=None) -> Estimate:
 def save_result(path, est: Estimate) -> None:
     """Check `est` (`check_estimate`: `ResultError` naming the field, nothing written) and
     write it to `path` atomically."""
-    from . import __version__
+    from ._version import __version__
 
     est = check_estimate(est)
     meta = dict(est.meta, jaxrefl_version=__version__)

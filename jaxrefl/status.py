@@ -1,7 +1,7 @@
 """How each point's reflectance was determined: the `Status` codes of `Estimate.status`.
 
-Kept free of JAX so that pictures (`jaxrefl.render`) and files (`jaxrefl.result`,
-`jaxrefl.export`) can name the codes without importing the estimators.
+Kept free of JAX so that pictures (`jaxrefl.outputs.render`) and files (`jaxrefl.result`,
+`jaxrefl.outputs.export`) can name the codes without importing the estimators.
 """
 
 from __future__ import annotations

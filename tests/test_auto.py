@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from data_synth.scans import Sensor, make_scan
-from jaxrefl import auto, formfactors
-from jaxrefl.local import Estimate, LocalOptions, estimate_local, prepare_rows
-from jaxrefl.radiosity import RadiosityOptions, direct_irradiance
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry import formfactors
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods import auto
+from jaxrefl.methods.local import LocalOptions, estimate_local, prepare_rows
+from jaxrefl.methods.radiosity import RadiosityOptions, direct_irradiance
+from jaxrefl.result import Estimate
 from tests.helpers import grid_plane
 
 
@@ -276,8 +278,8 @@ def test_glossy_fold_plans_method_three_and_its_ps(fresh_cache):
     calibrated model under the default target (0: as accurate as the best) sends the fold to
     Method III, whose ps is then used everywhere; a convex vase keeps Method I (no bias to
     inflate). The plan only: Method III itself is `test_inverse_photon`'s."""
-    from jaxrefl.classify import classify_scan
-    from jaxrefl.lights import select_lights
+    from jaxrefl.capture.select import select_lights
+    from jaxrefl.reflectance.classify import classify_scan
 
     kw = dict(resolution=20, setup="glossy", model="ward", tilt_deg=(25.0, 0.0))
     geo, _ = make_scan("E", **kw)
@@ -340,7 +342,7 @@ def test_photon_is_no_candidate_where_no_lobe_is_measured(fold_scan, fresh_cache
 def test_photon_is_a_candidate_only_for_ward_and_when_installed(monkeypatch):
     ok, why = auto.photon_available("torrance-sparrow")
     assert not ok and "Ward" in why
-    monkeypatch.setitem(sys.modules, "jaxrefl.inverse_photon", None)  # Method III absent
+    monkeypatch.setitem(sys.modules, "jaxrefl.methods.inverse_photon", None)  # Method III absent
     ok, why = auto.photon_available("ward")
     assert not ok and "not installed" in why
 

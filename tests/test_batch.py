@@ -3,6 +3,7 @@ reported without stopping the others, a Dask cluster with a worker killed mid-sc
 
 import argparse
 import csv
+import functools
 import json
 import os
 import signal
@@ -15,17 +16,19 @@ import pytest
 import jaxrefl
 from data_synth.scans import make_scan
 from jaxrefl import batch, cli, compile_cache
-from jaxrefl.io import atomic_write, folder_lock
+from jaxrefl.api import estimate_to_file
+from jaxrefl.cli._common import add_estimate_options, method_from_options
 from jaxrefl.result import load_result
+from jaxrefl.scan.io import atomic_write, folder_lock
 
 NAMES = ("s0", "s1", "s2")
 
 
 def estimate_options(*argv):
-    """The `jaxrefl estimate` options exactly as the command line parses them."""
+    """The method the `jaxrefl estimate` options choose, exactly as the command line parses them."""
     parser = argparse.ArgumentParser()
-    cli._add_estimate_options(parser)
-    return parser.parse_args(list(argv))
+    add_estimate_options(parser)
+    return method_from_options(parser.parse_args(list(argv)))
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +79,7 @@ def test_local_batch_writes_one_result_per_scan(scan_dir, tmp_path):
     assert statuses(out) == dict.fromkeys(NAMES, "done")
     assert "3 scans: 3 done, 0 skipped, 0 failed" in (out / "summary.md").read_text()
     # The same code path as `jaxrefl estimate`: the same numbers.
-    direct = cli.estimate_to_file(str(scan_dir / "s1.npz"), str(tmp_path / "direct.npz"), estimate_options())
+    direct = estimate_to_file(str(scan_dir / "s1.npz"), str(tmp_path / "direct.npz"), estimate_options())
     assert direct["status_counts"] == records[1]["status_counts"]
     np.testing.assert_array_equal(load_result(tmp_path / "direct.npz").pd, load_result(out / "s1_result.npz").pd)
 
@@ -151,27 +154,27 @@ def client():
             yield c
 
 
-def hang_once(scan, out, options):
-    """The real estimate, except the first attempt at `options.hang_name`: it starts the
-    atomic write of the result, writes half a file and blocks until its process is killed."""
-    if os.path.basename(scan) == options.hang_name and not os.path.exists(options.hang_marker):
+def hang_once(scan, out, method, hang_name, hang_marker):
+    """The real estimate, except the first attempt at `hang_name`: it starts the atomic write
+    of the result, writes half a file and blocks until its process is killed."""
+    if os.path.basename(scan) == hang_name and not os.path.exists(hang_marker):
         def write(fh):
             fh.write(b"PK\x03\x04 half a result")
             fh.flush()
-            atomic_write(options.hang_marker, lambda m: m.write(str(os.getpid()).encode()))
+            atomic_write(hang_marker, lambda m: m.write(str(os.getpid()).encode()))
             time.sleep(120)
 
         atomic_write(out, write)
-    return cli.estimate_to_file(scan, out, options)
+    return estimate_to_file(scan, out, method)
 
 
-def fail_once(scan, out, options):
+def fail_once(scan, out, method, marker_dir):
     """The real estimate, except that the first attempt at every scan raises."""
-    marker = os.path.join(options.marker_dir, os.path.basename(scan))
+    marker = os.path.join(marker_dir, os.path.basename(scan))
     if not os.path.exists(marker):
         atomic_write(marker, lambda fh: fh.write(b"1"))
         raise RuntimeError("transient failure")
-    return cli.estimate_to_file(scan, out, options)
+    return estimate_to_file(scan, out, method)
 
 
 def test_dask_batch_and_concurrent_attempts_leave_one_result(client, scan_dir, tmp_path, capsys, monkeypatch):
@@ -194,22 +197,22 @@ def test_dask_batch_and_concurrent_attempts_leave_one_result(client, scan_dir, t
 
 def test_dask_worker_killed_mid_scan(client, scan_dir, tmp_path):
     out = tmp_path / "out"
-    options = estimate_options()
-    options.hang_name, options.hang_marker = "s1.npz", str(tmp_path / "hung.pid")
+    marker = str(tmp_path / "hung.pid")
     killed = []
 
     def kill_when_hung():
         deadline = time.monotonic() + 100
-        while not os.path.exists(options.hang_marker) and time.monotonic() < deadline:
+        while not os.path.exists(marker) and time.monotonic() < deadline:
             time.sleep(0.05)
-        pid = int(open(options.hang_marker).read())
+        pid = int(open(marker).read())
         mid_write = any(f.startswith(".tmp-") for f in os.listdir(out))
         os.kill(pid, signal.SIGKILL)
         killed.append((pid, mid_write))
 
     watcher = threading.Thread(target=kill_when_hung, daemon=True)
     watcher.start()
-    records = batch.run_batch(scan_dir, out, options, client=client, estimate=hang_once)
+    records = batch.run_batch(scan_dir, out, estimate_options(), client=client,
+                              estimate=functools.partial(hang_once, hang_name="s1.npz", hang_marker=marker))
     watcher.join(timeout=5)
     (pid, mid_write), = killed
     assert pid != os.getpid() and mid_write  # a worker process, killed with half a result on disk
@@ -221,10 +224,8 @@ def test_dask_worker_killed_mid_scan(client, scan_dir, tmp_path):
 
 @pytest.mark.parametrize("retries, status", [(1, "done"), (0, "failed")])
 def test_dask_retries_a_scan_that_raised(client, scan_dir, tmp_path, retries, status):
-    options = estimate_options()
-    options.marker_dir = str(tmp_path)
-    records = batch.run_batch([scan_dir / "s0.npz"], tmp_path / "out", options, client=client, retries=retries,
-                              estimate=fail_once)
+    records = batch.run_batch([scan_dir / "s0.npz"], tmp_path / "out", estimate_options(), client=client,
+                              retries=retries, estimate=functools.partial(fail_once, marker_dir=str(tmp_path)))
     assert [r["status"] for r in records] == [status]
     if status == "failed":
         assert records[0]["error"] == "RuntimeError: transient failure"

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxrefl import brdf, rig
+from jaxrefl.geometry import rig
+from jaxrefl.reflectance import brdf
 
 from .helpers import grid_plane, unit
 

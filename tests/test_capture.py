@@ -9,9 +9,15 @@ import sys
 
 import pytest
 
-from jaxrefl.capture import MANIFEST, CaptureError, capture, load_plan, plan_from_json, shell_camera
-from jaxrefl.rig.serial import ControllerDisconnected, ControllerSilent, LinkOptions, ProtocolError, RigError
-from jaxrefl.rig.simulator import Faults, Simulator
+from jaxrefl.capture.serial import (
+    ControllerDisconnected,
+    ControllerSilent,
+    LinkOptions,
+    ProtocolError,
+    RigError,
+)
+from jaxrefl.capture.session import MANIFEST, CaptureError, capture, load_plan, plan_from_json, shell_camera
+from jaxrefl.capture.simulator import Faults, Simulator
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LIGHTS = [0, 3, 5, 7, 11, 14, 18, 22, 29, 33, 41, 57]

@@ -1,4 +1,4 @@
-"""Never a silent wrong answer: physical consistency before fitting (`jaxrefl.checks`),
+"""Never a silent wrong answer: physical consistency before fitting (`jaxrefl.scan.checks`),
 bounds and honest status after it, warnings when the data say little.
 
 Every scan here is the vase V at resolution 16 under 12 lights of the paper's rack (or
@@ -15,13 +15,14 @@ from hypothesis import strategies as st
 
 from data_synth.scans import Sensor, direct_radiance, make_scan
 from data_synth.zoo import make_cell
-from jaxrefl import brdf, render
-from jaxrefl.auto import AutoOptions, estimate_auto
-from jaxrefl.checks import ObservationError, check_observations, checked_scan, exclude_bad_lights
 from jaxrefl.cli import main
-from jaxrefl.io import save_scan
-from jaxrefl.local import MEASURED, POOLED, UNRESOLVED, estimate_local
-from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
+from jaxrefl.methods.auto import AutoOptions, estimate_auto
+from jaxrefl.methods.local import MEASURED, POOLED, UNRESOLVED, estimate_local
+from jaxrefl.methods.radiosity import RadiosityOptions, estimate_radiosity
+from jaxrefl.outputs import render
+from jaxrefl.reflectance import brdf
+from jaxrefl.scan.checks import ObservationError, check_observations, checked_scan, exclude_bad_lights
+from jaxrefl.scan.io import save_scan
 
 LIGHTS = list(range(20, 32))
 RAYS = RadiosityOptions(rays=32)
@@ -257,8 +258,8 @@ def test_most_points_unresolved_is_a_warning(vase, tmp_path, caplog, capsys):
     of warning. A diffuse object (ps = 0) has no lobe anywhere: every method logs a warning on
     its own logger, and the command line prints one line on stderr."""
     scan = rendered(vase, 0.0, 0.1)
-    runs = {"jaxrefl.local": lambda: estimate_local(scan), "jaxrefl.radiosity": lambda: estimate_radiosity(scan, RAYS),
-            "jaxrefl.auto": lambda: estimate_auto(scan, AutoOptions(radiosity=RAYS, methods=("local", "radiosity")))}
+    runs = {"jaxrefl.methods.local": lambda: estimate_local(scan), "jaxrefl.methods.radiosity": lambda: estimate_radiosity(scan, RAYS),
+            "jaxrefl.methods.auto": lambda: estimate_auto(scan, AutoOptions(radiosity=RAYS, methods=("local", "radiosity")))}
     for logger, run in runs.items():
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="jaxrefl"):

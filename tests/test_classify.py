@@ -4,8 +4,16 @@ import numpy as np
 import pytest
 
 from data_synth.scans import Sensor, make_scan
-from jaxrefl.classify import T_DIFF, T_INVALID, T_NONE, T_SPEC, Thresholds, classify, classify_scan
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.reflectance.classify import (
+    T_DIFF,
+    T_INVALID,
+    T_NONE,
+    T_SPEC,
+    Thresholds,
+    classify,
+    classify_scan,
+)
 
 from .helpers import grid_plane, plate_over_plane, sphere, unit
 

@@ -5,8 +5,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxrefl.fill import nearest_candidates, precise_huber
-from jaxrefl.inverse_photon import _fill_lobes, _material_affinity
+from jaxrefl.methods.inverse_photon import _fill_lobes, _material_affinity
+from jaxrefl.reflectance.fill import nearest_candidates, precise_huber
 
 
 def _included(w, nbr, target, affinity):

@@ -7,9 +7,9 @@ import trimesh
 
 from data_synth.objects import fold_coordinate, make_object
 from data_synth.pathtrace import Material, PathTracer
-from jaxrefl.final_gather import gather_parts, gather_rays
-from jaxrefl.photon import PhotonReplay
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods.final_gather import gather_parts, gather_rays
+from jaxrefl.methods.photon import PhotonReplay
 
 from .helpers import unit
 

@@ -21,11 +21,12 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import jaxrefl
-from jaxrefl import brdf, cli
-from jaxrefl.checks import ObservationError
-from jaxrefl.export import load_ply
-from jaxrefl.io import ScanError, save_scan, validate_scan
+from jaxrefl import cli
+from jaxrefl.outputs.export import load_ply
+from jaxrefl.reflectance import brdf
 from jaxrefl.result import check_estimate, load_result
+from jaxrefl.scan.checks import ObservationError
+from jaxrefl.scan.io import ScanError, save_scan, validate_scan
 
 from .test_checks import LIGHTS, rendered, scaled, vase  # noqa: F401 (vase: the shared fixture)
 
@@ -324,7 +325,7 @@ def through_everything(scan, method, folder):
     image = back.relight(scan, light, width=24, height=16)
     on = ~np.isnan(image)
     assert on.any() and np.all(np.isfinite(image[on])) and np.all(image[on] >= 0)
-    direct = jaxrefl.relight.relight(scan.vertices, scan.faces, scan.normals, back, light,
+    direct = jaxrefl.outputs.relight.relight(scan.vertices, scan.faces, scan.normals, back, light,
                                      float(scan.intensities()[0]), scan.camera_positions()[0, 0])
     assert np.all(np.isfinite(direct)) and np.all(direct >= 0)
     back.to_ply(folder / "result.ply", scan)

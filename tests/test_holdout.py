@@ -1,4 +1,4 @@
-"""Held-out-light validation (`jaxrefl.holdout`, `jaxrefl estimate --holdout`): real Embree, real jit."""
+"""Held-out-light validation (`jaxrefl.outputs.holdout`, `jaxrefl estimate --holdout`): real Embree, real jit."""
 
 import dataclasses
 import json
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from data_synth.scans import make_scan
-from jaxrefl import holdout as ho
-from jaxrefl import relight as rl
-from jaxrefl.io import Scan
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.outputs import holdout as ho
+from jaxrefl.outputs import relight as rl
+from jaxrefl.scan.io import Scan
 from tests.test_cli import jaxrefl
 
 V_LIGHTS = list(range(0, 60, 5))  # 12 of the rack's 60
@@ -126,7 +126,7 @@ def test_truth_relit_under_held_out_lights_matches(which, vase, fold):
 
 
 def test_estimate_with_holdout_method_I(vase):
-    from jaxrefl.local import estimate_local
+    from jaxrefl.methods.local import estimate_local
 
     held = ho.choose_holdout(vase.n_lights, fraction=0.25)
     est, fit, test = ho.estimate_with_holdout(vase, estimate_local, held)

@@ -13,12 +13,14 @@ import trimesh
 from PIL import Image
 
 from data_synth.objects import make_object
-from jaxrefl import brdf, render
 from jaxrefl import srgb
-from jaxrefl.ingest import DISTANT, bilinear, ingest, read_image, undistort, write_png
-from jaxrefl.io import ScanError
-from jaxrefl.raycast import RayCaster
-from jaxrefl.rig import PinholeCamera, observation_geometry
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.geometry.rig import PinholeCamera, observation_geometry
+from jaxrefl.outputs import render
+from jaxrefl.reflectance import brdf
+from jaxrefl.scan.images import read_image, write_png
+from jaxrefl.scan.ingest import DISTANT, bilinear, ingest, undistort
+from jaxrefl.scan.io import ScanError
 
 from .helpers import plate_over_plane, unit
 from .test_cli import assert_one_line_error, jaxrefl

@@ -8,14 +8,14 @@ import pytest
 
 from data_synth.objects import fold_coordinate, make_object
 from data_synth.scans import Sensor, make_scan
-from jaxrefl.classify import classify_scan
+from jaxrefl.capture.select import select_lights
 from jaxrefl.cli import main
-from jaxrefl.inverse_photon import PhotonOptions, estimate_photon
-from jaxrefl.io import save_scan
-from jaxrefl.lights import select_lights
-from jaxrefl.local import LocalOptions, estimate_local
-from jaxrefl.radiosity import RadiosityOptions, estimate_radiosity
+from jaxrefl.methods.inverse_photon import PhotonOptions, estimate_photon
+from jaxrefl.methods.local import LocalOptions, estimate_local
+from jaxrefl.methods.radiosity import RadiosityOptions, estimate_radiosity
+from jaxrefl.reflectance.classify import classify_scan
 from jaxrefl.result import load_result
+from jaxrefl.scan.io import save_scan
 
 
 def _selected_scan(name, resolution, **kw):
@@ -75,8 +75,8 @@ def test_step_b_cost_from_channel_sums_equals_direct_sum():
     import jax
     import jax.numpy as jnp
 
-    from jaxrefl import brdf
-    from jaxrefl import inverse_photon as ip
+    from jaxrefl.methods import inverse_photon as ip
+    from jaxrefl.reflectance import brdf
 
     jax.config.update("jax_enable_x64", True)
     rng = np.random.default_rng(3)
@@ -154,7 +154,7 @@ def test_oblique_glossy_fold():
 def test_identifiable_without_any_lobe_fit():
     """No point with lobe evidence (an empty set of lobe fits): no lobe is identifiable, and
     no IndexError from the median of an empty set."""
-    from jaxrefl.inverse_photon import _identifiable
+    from jaxrefl.methods.inverse_photon import _identifiable
 
     empty = jnp.zeros(0)
     out = _identifiable(empty, empty, empty, empty, {"n_b": jnp.zeros(0, int), "lobe": jnp.zeros(0, bool)}, 3.0, 0.0)

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from jaxrefl.io import FORMAT_VERSION, Scan, ScanError, atomic_write, load_scan, save_scan
+from jaxrefl.scan.io import FORMAT_VERSION, Scan, ScanError, atomic_write, load_scan, save_scan
 
 from .helpers import sphere
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxrefl.lights import coverage, exact_minimum, select_lights
+from jaxrefl.capture.select import coverage, exact_minimum, select_lights
 
 
 def constructed():

@@ -8,11 +8,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_synth.scans import Sensor, direct_radiance, make_scan
-from jaxrefl import brdf
-from jaxrefl.classify import T_DIFF, T_INVALID, T_NONE, T_SPEC, classify_scan
-from jaxrefl.lights import select_lights
-from jaxrefl.local import (INTERPOLATED, MEASURED, POOLED, UNRESOLVED, LocalOptions, estimate_local, fit_rows,
-                           specular_closed_form)
+from jaxrefl.capture.select import select_lights
+from jaxrefl.methods.local import (
+    INTERPOLATED,
+    MEASURED,
+    POOLED,
+    UNRESOLVED,
+    LocalOptions,
+    estimate_local,
+    fit_rows,
+    specular_closed_form,
+)
+from jaxrefl.reflectance import brdf
+from jaxrefl.reflectance.classify import T_DIFF, T_INVALID, T_NONE, T_SPEC, classify_scan
 
 from .helpers import unit
 
@@ -187,7 +195,7 @@ def test_fold_object_pd_rises_toward_the_fold():
     lobes of the earlier rule took it instead: pd fell to 0.06 at the fold). Points on the
     fold line, seen exactly edge-on, have no usable sample."""
     from data_synth.objects import fold_coordinate
-    from jaxrefl.local import prepare_rows
+    from jaxrefl.methods.local import prepare_rows
 
     scan, _ = make_scan("E", resolution=24, setup="diffuse", rig="scanner", lights=[24, 9, 0, 50, 59],
                         global_illumination=True, samples=256, seed=0)
@@ -215,7 +223,7 @@ def test_pooled_lobes_relight_a_sharp_highlight_better():
     import dataclasses
 
     from data_synth.scans import apply_sensor
-    from jaxrefl.local import prepare_rows
+    from jaxrefl.methods.local import prepare_rows
 
     plan, _ = make_scan("V", resolution=32)
     m = classify_scan(plan, use_observations=False)
@@ -317,7 +325,7 @@ def test_pooled_lobe_recovers_what_single_points_cannot(model, rough):
     """Neighbours of one material (albedos within 3 %) each see the lobe once: their own fits
     cannot tell ps from roughness, pooled (each keeping its own albedo) they pin it down,
     with calibrated standard deviations."""
-    from jaxrefl.pool import pooled_specular
+    from jaxrefl.reflectance.pool import pooled_specular
 
     n = 600
     rng = np.random.default_rng(11)
@@ -342,7 +350,7 @@ def test_pooled_lobe_recovers_what_single_points_cannot(model, rough):
 def test_pooled_lobe_needs_strong_specular_evidence():
     """The same rows with no sample near any lobe (all between 21 and 50 degrees) and an
     interreflection-like trend: no pooled lobe, however well a broad one would fit."""
-    from jaxrefl.pool import pooled_specular
+    from jaxrefl.reflectance.pool import pooled_specular
 
     n = 200
     rng = np.random.default_rng(23)
@@ -371,7 +379,7 @@ def test_bounded_linear_solve_matches_scipy():
     bounded least squares on the explicit design matrix, with bounds active and not."""
     from scipy.optimize import lsq_linear
 
-    from jaxrefl.lm import bounded_arrow_solve
+    from jaxrefl.methods.lm import bounded_arrow_solve
 
     rng = np.random.default_rng(13)
     n, m = 300, 8
@@ -401,7 +409,7 @@ def test_bounded_linear_solve_matches_scipy():
 
 
 def test_inverse_diagonal_matches_numpy():
-    from jaxrefl.lm import spd_inverse_diagonal
+    from jaxrefl.methods.lm import spd_inverse_diagonal
 
     rng = np.random.default_rng(14)
     j = rng.standard_normal((200, 9, 5)) * np.logspace(-3, 3, 5)  # badly scaled columns
@@ -416,7 +424,7 @@ def test_inverse_diagonal_matches_numpy():
 def test_standard_deviations_match_autodiff_covariance(model):
     """The std from the written-out sums equal s^2 (J^T J)^-1 with J by autodiff of the
     BRDF (`brdf`), at the fitted parameters."""
-    from jaxrefl.local import _make_residual, _noise_weights
+    from jaxrefl.methods.local import _make_residual, _noise_weights
 
     rng = np.random.default_rng(15)
     rows, _, _, _ = synthetic_rows(rng, 40, 10, model)

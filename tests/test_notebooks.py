@@ -26,11 +26,11 @@ def test_notebooks_exist():
 
 
 def test_figure_writers_leave_the_backend_alone(tmp_path):
-    """jaxrefl.render's figure writers draw off pyplot, so a notebook's inline backend stays
+    """jaxrefl.outputs.render's figure writers draw off pyplot, so a notebook's inline backend stays
     selected after them (they used to switch matplotlib to Agg)."""
     import matplotlib
 
-    from jaxrefl import render
+    from jaxrefl.outputs import render
 
     before = matplotlib.get_backend()
     matplotlib.use("svg")

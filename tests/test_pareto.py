@@ -9,7 +9,7 @@ import types
 import numpy as np
 
 from benchmarks import pareto
-from jaxrefl.io import Scan
+from jaxrefl.scan.io import Scan
 
 
 def test_pareto_front_hand_made():

@@ -7,14 +7,14 @@ import pytest
 from data_synth.objects import fold_coordinate, make_object
 from data_synth.pathtrace import Material, PathTracer, brdf_numpy
 from data_synth.validation import convergence, furnace
-from jaxrefl import brdf
+from jaxrefl.reflectance import brdf
 
 from .helpers import grid_plane, sphere, unit
 
 
 @pytest.mark.parametrize("model", list(brdf.MODELS))
 def test_numpy_brdf_agrees_with_jaxrefl(model):
-    """The path tracer's own BRDF code is an independent re-implementation of jaxrefl.brdf."""
+    """The path tracer's own BRDF code is an independent re-implementation of jaxrefl.reflectance.brdf."""
     rng = np.random.default_rng(0)
     p = 5000
     n = unit(rng.normal(size=(p, 3)))

@@ -16,10 +16,12 @@ import trimesh
 
 from data_synth.objects import fold_coordinate, make_object
 from data_synth.pathtrace import Material, PathTracer
-from jaxrefl import brdf, gather, photon
-from jaxrefl.mesh import vertex_areas
-from jaxrefl.photon import PhotonReplay, relight_indirect, trace_photons
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.mesh import vertex_areas
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods import gather, photon
+from jaxrefl.methods.final_gather import relight_indirect
+from jaxrefl.methods.photon import PhotonReplay, trace_photons
+from jaxrefl.reflectance import brdf
 
 from .helpers import grid_plane, sphere, unit
 

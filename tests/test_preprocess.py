@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_synth.rangescan import make_range_image
-from jaxrefl.preprocess import (
+from jaxrefl.scan.preprocess import (
     RangeImage,
     angular_error_deg,
     face_averaged_normals,

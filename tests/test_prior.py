@@ -1,4 +1,4 @@
-"""The shared reflectance prior (jaxrefl.prior) through Method I, on rig-zoo scenes."""
+"""The shared reflectance prior (jaxrefl.reflectance.prior) through Method I, on rig-zoo scenes."""
 
 import numpy as np
 import pytest
@@ -6,13 +6,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_synth.zoo import make_cell
-from jaxrefl import brdf, prior
-from jaxrefl.holdout import split_scan
-from jaxrefl.local import (MEASURED, POOLED, UNRESOLVED, LocalOptions, _bound_lobes, estimate_local,
-                           fit_rows, prepare_rows)
-from jaxrefl.raycast import RayCaster
-from jaxrefl.relight import direct_radiance
-from jaxrefl.local import Estimate
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods.local import (
+    MEASURED,
+    POOLED,
+    UNRESOLVED,
+    LocalOptions,
+    _bound_lobes,
+    estimate_local,
+    fit_rows,
+    prepare_rows,
+)
+from jaxrefl.outputs.holdout import split_scan
+from jaxrefl.outputs.relight import direct_radiance
+from jaxrefl.reflectance import brdf, prior
+from jaxrefl.result import Estimate
 
 
 def _rel(a, b):

@@ -10,13 +10,19 @@ from scipy.sparse.linalg import spsolve
 from data_synth.objects import fold_coordinate
 from data_synth.pathtrace import Material, PathTracer
 from data_synth.scans import make_scan
-from jaxrefl.formfactors import form_factors
-from jaxrefl.local import estimate_local, prepare_rows
-from jaxrefl.mesh import area_normal_sums
-from jaxrefl.radiosity import (RadiosityOptions, direct_irradiance, estimate_radiosity, inverse_radiosity,
-                               light_configs, solve_radiosity)
-from jaxrefl.raycast import RayCaster
-from jaxrefl.reports import fold_profile
+from jaxrefl.geometry.formfactors import form_factors
+from jaxrefl.geometry.mesh import area_normal_sums
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.methods.local import estimate_local, prepare_rows
+from jaxrefl.methods.radiosity import (
+    RadiosityOptions,
+    direct_irradiance,
+    estimate_radiosity,
+    inverse_radiosity,
+    light_configs,
+    solve_radiosity,
+)
+from jaxrefl.paper.reports import fold_profile
 
 
 def rectangle(origin, eu, ev, n=12):
@@ -125,7 +131,7 @@ def test_form_factors_are_cached_on_disk(tmp_path, monkeypatch):
     first = form_factors(v, f, n, rays=16, seed=3)
     files = list((tmp_path / "formfactors").glob("*.npz"))
     assert len(files) == 1
-    from jaxrefl import formfactors as module
+    from jaxrefl.geometry import formfactors as module
 
     module._MEMORY.clear()
     second = form_factors(v, f, n, rays=16, seed=3)
@@ -281,8 +287,8 @@ def test_inverse_radiosity_per_point_lights_matches_plain_iteration():
     fixed-point iteration with dense products and the correction's binned part ray-cast
     on its own. Also: a warm start returns the same fixed point at once, and a region
     solve on the configurations its points use equals the solve on all of them."""
-    from jaxrefl.classify import T_DIFF
-    from jaxrefl.radiosity import first_bounce_correction, restrict_configs
+    from jaxrefl.methods.radiosity import first_bounce_correction, restrict_configs
+    from jaxrefl.reflectance.classify import T_DIFF
 
     scan, _ = make_scan("A", resolution=16, lights=[0, 20, 40])
     caster = RayCaster(scan.vertices, scan.faces)

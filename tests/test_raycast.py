@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from data_synth.objects import fold_coordinate, make_object
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry.raycast import RayCaster
 
 from .helpers import plate_over_plane, sphere, unit
 

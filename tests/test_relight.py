@@ -7,20 +7,20 @@ import pytest
 import trimesh
 
 from data_synth.scans import make_scan
-from jaxrefl import relight as rl
-from jaxrefl import render
-from jaxrefl.export import export_ply
-from jaxrefl.io import save_scan
-from jaxrefl.local import STATUS_NAMES, Estimate
-from jaxrefl.raycast import RayCaster
-from jaxrefl.result import save_result
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.outputs import relight as rl
+from jaxrefl.outputs import render
+from jaxrefl.outputs.export import export_ply
+from jaxrefl.result import Estimate, save_result
+from jaxrefl.scan.io import save_scan
+from jaxrefl.status import STATUS_NAMES
 
 from .helpers import grid_plane
 from .test_cli import assert_one_line_error, jaxrefl
 
 
 def test_status_colours_cover_every_status():
-    """The maps draw each of `jaxrefl.local.STATUS_NAMES` in its own discrete colour."""
+    """The maps draw each of `jaxrefl.methods.local.STATUS_NAMES` in its own discrete colour."""
     assert render.STATUS_NAMES == STATUS_NAMES
     assert len(set(render.STATUS_COLOURS)) == len(STATUS_NAMES)
     cmap, norm = render.status_colormap()
@@ -226,3 +226,38 @@ def test_cli_relight_maps_export(scan_a, tmp_path):
     r = jaxrefl("relight", tmp_path / "r.npz", tmp_path / "a.npz", "--light", "1,2", "--out", out)
     assert_one_line_error(r, "light")
     assert not out.exists()
+
+
+def test_exr_relit_image_and_maps_are_linear_and_named(scan_a, tmp_path):
+    """`relight --out X.exr` writes the same linear radiance as `.npy` with its coverage in `A`;
+    `maps --out X.exr` writes the result's maps as named float layers, readable by OpenEXR."""
+    from jaxrefl.cli import main
+    from jaxrefl.scan.images import read_exr, read_image, write_exr
+
+    save_scan(tmp_path / "a.npz", scan_a)
+    est = _estimate(scan_a, np.random.default_rng(3))
+    save_result(tmp_path / "r.npz", est)
+    view = ["--light=-0.3,0.35,0.5", "--camera", "0.4,0.3,0.6", "--width", "48", "--height", "32"]
+    for out in ("relit.npy", "relit.exr"):
+        assert main(["relight", str(tmp_path / "r.npz"), str(tmp_path / "a.npz"), *view,
+                     "--out", str(tmp_path / out)]) == 0
+    linear, exr = np.load(tmp_path / "relit.npy"), read_exr(tmp_path / "relit.exr")
+    assert set(exr) == {"RGB", "A"} and exr["RGB"].shape == (32, 48, 3)
+    on = exr["A"] == 1
+    assert 0 < on.sum() < on.size and np.all(exr["RGB"][~on] == 0)
+    np.testing.assert_allclose(exr["RGB"], linear, rtol=1e-6, atol=1e-12)  # float32 of the same image
+    np.testing.assert_allclose(read_image(tmp_path / "relit.exr")[0], linear, rtol=1e-6, atol=1e-12)
+
+    assert main(["maps", str(tmp_path / "r.npz"), str(tmp_path / "a.npz"), "--view", "camera", "--width", "40",
+                 "--out", str(tmp_path / "maps.exr")]) == 0
+    maps = read_exr(tmp_path / "maps.exr")
+    assert set(maps) == {"RGB", "ps", "roughness", "std_ps", "std_roughness", "status", "A"}
+    on = maps["A"] == 1
+    assert on.any() and np.isnan(maps["ps"][~on]).all()
+    assert set(np.unique(maps["status"][on])) <= set(np.unique(est.status).astype(np.float32))
+    assert maps["ps"][on].min() >= est.ps.min() - 1e-6 and maps["ps"][on].max() <= est.ps.max() + 1e-6
+    write_exr(tmp_path / "ps.exr", {"ps": maps["ps"]})
+    with pytest.raises(ValueError, match="RGB or Y"):  # an image needs colour or grey
+        read_image(tmp_path / "ps.exr")
+    with pytest.raises(ValueError, match="one size"):
+        write_exr(tmp_path / "bad.exr", {"RGB": exr["RGB"], "A": maps["A"]})

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxrefl import rig
+from jaxrefl.geometry import rig
 
 from .helpers import unit
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxrefl import brdf
-from jaxrefl.io import ScanError, atomic_write, save_scan
-from jaxrefl.local import Estimate
-from jaxrefl.rig import PinholeCamera
+from jaxrefl.geometry.rig import PinholeCamera
+from jaxrefl.reflectance import brdf
+from jaxrefl.result import Estimate
+from jaxrefl.scan.io import ScanError, atomic_write, save_scan
 
 from .helpers import grid_plane
 from .test_cli import assert_one_line_error, jaxrefl
@@ -130,7 +130,7 @@ def _photometric_folder(folder, image, black_level):
 
 
 def test_ingest_refuses_an_image_below_the_black_level(tmp_path):
-    from jaxrefl.ingest import ingest
+    from jaxrefl.scan.ingest import ingest
 
     folder = _photometric_folder(tmp_path, np.full((8, 8, 3), -1.0), black_level=0.5)
     with pytest.raises(ScanError) as info:
@@ -144,7 +144,7 @@ def test_ingest_refuses_an_image_below_the_black_level(tmp_path):
 
 def test_ingest_clips_sensor_noise_below_the_black_level(tmp_path):
     """Dark pixels scatter around the black level: a minority below it is noise, set to 0."""
-    from jaxrefl.ingest import ingest
+    from jaxrefl.scan.ingest import ingest
 
     image = np.full((8, 8, 3), 0.9)
     image[::2] = 0.45  # 50% of the values 0.05 below the black level
@@ -153,7 +153,7 @@ def test_ingest_clips_sensor_noise_below_the_black_level(tmp_path):
 
 
 def test_ingest_singular_intrinsics_name_the_field(tmp_path):
-    from jaxrefl.ingest import ingest
+    from jaxrefl.scan.ingest import ingest
 
     v, f = grid_plane(0.1, 5)
     trimesh.Trimesh(v, f, process=False).export(tmp_path / "mesh.ply")
@@ -217,7 +217,7 @@ def test_atomic_write_refuses_a_path_that_is_not_a_regular_file(tmp_path, kind):
 
 
 def test_check_output_path_refuses_dev_null_and_inputs(tmp_path):
-    from jaxrefl.io import check_output_path
+    from jaxrefl.scan.io import check_output_path
 
     with pytest.raises(ValueError, match="out: /dev/null exists and is not a regular file"):
         check_output_path("/dev/null")
@@ -251,7 +251,7 @@ def test_written_files_honour_the_umask(tmp_path, umask, mode):
 
 @pytest.mark.parametrize("argument", ["points", "normals", "cam_pos", "light_pos"])
 def test_observation_geometry_rejects_nan_naming_the_argument(argument):
-    from jaxrefl.rig import observation_angles, observation_geometry
+    from jaxrefl.geometry.rig import observation_angles, observation_geometry
 
     v, _ = grid_plane(0.1, 3)
     args = dict(points=v, normals=np.tile([0.0, 0.0, 1.0], (len(v), 1)), cam_pos=np.array([0.0, 0.0, 1.0]),
@@ -264,7 +264,7 @@ def test_observation_geometry_rejects_nan_naming_the_argument(argument):
 
 
 def test_observation_geometry_rejects_bad_shapes():
-    from jaxrefl.rig import observation_geometry
+    from jaxrefl.geometry.rig import observation_geometry
 
     v, _ = grid_plane(0.1, 3)
     n = np.tile([0.0, 0.0, 1.0], (len(v), 1))

@@ -7,7 +7,7 @@ import serial as pyserial
 from hypothesis import given
 from hypothesis import strategies as st
 
-from jaxrefl.rig.serial import (
+from jaxrefl.capture.serial import (
     ControllerDisconnected,
     ControllerError,
     ControllerSilent,
@@ -21,7 +21,7 @@ from jaxrefl.rig.serial import (
     parse_reply,
     parse_request,
 )
-from jaxrefl.rig.simulator import Faults, Simulator
+from jaxrefl.capture.simulator import Faults, Simulator
 
 FAST = LinkOptions(timeout=0.1, retries=3, backoff=0.01, settle_timeout=1.0, poll=0.01)
 

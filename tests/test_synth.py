@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from data_synth.scans import Sensor, apply_sensor, make_scan
-from jaxrefl import rig
+from jaxrefl.geometry import rig
 
 
 def test_scanner_scan_is_consistent_with_rig_geometry():
@@ -25,7 +25,7 @@ def test_direct_scan_matches_local_model():
     """Direct-only radiance = BRDF x Y cos / r^2 wherever the light is unshadowed."""
     import jax
 
-    from jaxrefl import brdf
+    from jaxrefl.reflectance import brdf
 
     scan, _ = make_scan("A", resolution=24, lights=[5, 30], intensity=2.0)
     g = rig.observation_geometry(scan.vertices, scan.normals, scan.cam_pos, scan.light_pos)

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from data_synth import zoo
-from jaxrefl import brdf, rig
-from jaxrefl.io import load_scan, save_scan, validate_scan
-from jaxrefl.raycast import RayCaster
+from jaxrefl.geometry import rig
+from jaxrefl.geometry.raycast import RayCaster
+from jaxrefl.reflectance import brdf
+from jaxrefl.scan.io import load_scan, save_scan, validate_scan
 
 SMALL = 162  # vertices: the second icosphere subdivision, and the smallest fold
 

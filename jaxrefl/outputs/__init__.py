@@ -1,0 +1,1 @@
+"""Results used: pictures (`render`), relighting, held-out-light validation, PLY export."""

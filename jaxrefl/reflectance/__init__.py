@@ -1,0 +1,1 @@
+"""Reflectance models: BRDFs, measurability classes, the shared reflectance prior, fills."""

@@ -1,0 +1,479 @@
+"""The shared reflectance prior: materials, their lobes, and how far each point leans on them.
+
+A point's own samples may pin its specular lobe (ps, ln roughness `rho`), or see it in one
+light, off-specular, or not at all. The object shares reflectance where it shares a
+material, so the lobe is modelled in two levels, every constant of which comes from the data:
+
+1. **Materials** (`fit_materials`): a diagonal Gaussian mixture over per-point features
+   (pd per channel; ln ps and `rho` where the point's own lobe is measured, each with the
+   point's own variance added, so a point without a lobe is clustered by its colour alone).
+   K = 1 .. `k_max`, chosen by the Bayesian information criterion.
+2. **A material's lobe** (`material_lobes`): the joint maximum-likelihood fit of one
+   (ps, `rho`) to all the material's samples at once, every point's pd profiled out. Points
+   that each see one half-angle together see many.
+3. **Within a material the lobe varies smoothly** (`lobe_prior`): the prior mean of a point is
+   the precision-weighted mean of the measured lobes among its nearest material-mates, with
+   the material's lobe as one more observation; the prior's width is the spread of the
+   measured lobes about their (leave-one-out) means beyond their own noise (empirical Bayes,
+   robust method of moments), as it grows with the distance to the lobes a mean rests on,
+   never wider than the material's whole spread nor narrower than the estimate can resolve
+   from the points it rests on.
+
+Each point's estimate is then the maximum a posteriori of its own likelihood and this prior
+(the row solver lives with the likelihood, in `jaxrefl.methods.local`), and `status_from_posterior`
+names which of the two dominated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.optimize import brentq
+from scipy.spatial import cKDTree
+
+__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LobePrior", "lobe_prior",
+           "status_from_posterior", "prior_conflict"]
+
+_VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
+#: Fewest own lobes from which a material's spread is estimated (a variance from fewer
+#: points is too uncertain to widen or narrow a prior); with fewer, the material's lobe.
+_MIN_SPREAD_POINTS = 8
+_RESTARTS = 4  # seedings of the mixture per K
+#: EM stops when the log likelihood gains less than this share of itself: BIC compares
+#: likelihoods that differ by whole units, far above it.
+_EM_TOL = 1e-6
+_SPREAD_SAMPLE = 2000  # measured points a distance-dependent spread is measured on
+
+
+@dataclass(frozen=True)
+class Materials:
+    """Material labels `(N,)` int in `[0, k)`, the chosen `k`, and the BIC of every K tried."""
+
+    labels: np.ndarray
+    k: int
+    bic: dict
+
+
+def _log_density(x, v, mu, tau2, log_w, xp=np):
+    """Per point and component log density `(n, K)` of the diagonal mixture; dimensions with
+    infinite observation variance `v` are marginalised out (`xp`: numpy or jax.numpy)."""
+    present = xp.isfinite(v)
+    var = tau2[None] + xp.where(present, v, 0.0)[:, None]  # (n, K, D)
+    d2 = (xp.where(present, x, 0.0)[:, None] - mu[None]) ** 2 / var
+    terms = xp.where(present[:, None], d2 + xp.log(2 * np.pi * var), 0.0)
+    return log_w[None] - 0.5 * terms.sum(-1)
+
+
+def _lloyd_seeds(colour, k, rng):
+    """Hard initial assignment `(n,)` to `k` clusters: k-means++ seeds on colour (always
+    present), deterministic through `rng`, moved by Lloyd's iterations to the clusters' middles."""
+    n = len(colour)
+    centres = [colour[rng.integers(n)]]
+    for _ in range(1, k):
+        d2 = np.min(((colour[:, None] - np.array(centres)[None]) ** 2).sum(-1), 1)
+        centres.append(colour[rng.choice(n, p=d2 / d2.sum())] if d2.sum() > 0 else colour[rng.integers(n)])
+    centres = np.array(centres)
+    for _ in range(10):
+        nearest = np.argmin(((colour[:, None] - centres[None]) ** 2).sum(-1), 1)
+        centres = np.array([colour[nearest == j].mean(0) if np.any(nearest == j) else centres[j] for j in range(k)])
+    return np.argmin(((colour[:, None] - centres[None]) ** 2).sum(-1), 1)
+
+
+@partial(jax.jit, static_argnames=("iterations",))
+def _em_batch(x, v, weight, resp, active, iterations=100):
+    """EM for diagonal mixtures with per-point observation variances, one per batch row.
+
+    **Arguments:** `x`, `v` `(n, D)` (v inf: missing); `weight` `(n,)` 1 for a point, 0 for
+    padding; `resp` `(B, n, K)` initial responsibilities; `active` `(B, K)` bool, the
+    components each row uses (a K-component fit is a row with the first K active).
+
+    **Returns:** per row the log likelihood `(B,)`, `mu`, `tau2` `(B, K, D)`, `log_w`
+    `(B, K)` and `collapsed` `(B,)` (a component fell under `max(2, 2 D)` points).
+    """
+    dim = x.shape[1]
+    n = weight.sum()
+    present = jnp.isfinite(v) & (weight[:, None] > 0)
+    xx, vv = jnp.where(present, x, 0.0), jnp.where(present, v, 0.0)
+    tol = max(_EM_TOL, 10 * float(jnp.finfo(x.dtype).eps))
+
+    def one(resp0, act):
+        k = resp0.shape[1]
+
+        def step(state):
+            resp, _, _, tau2, ll, _, it, collapsed = state
+            resp = resp * weight[:, None]
+            nk = resp.sum(0)
+            collapsed = collapsed | jnp.any(act & (nk < max(2.0, 2 * dim)))
+            log_w = jnp.where(act, jnp.log(jnp.maximum(nk, 1e-30) / n), -jnp.inf)
+            r = resp[:, :, None] * present[:, None, :]
+            w = r / (tau2[None] + vv[:, None, :])
+            sw, sr = w.sum(0), r.sum(0)
+            mu = jnp.where(sw > 0, jnp.sum(w * xx[:, None, :], 0) / jnp.where(sw > 0, sw, 1.0), 0.0)
+            moment = jnp.sum(r * ((xx[:, None, :] - mu[None]) ** 2 - vv[:, None, :]), 0) / jnp.where(sr > 0, sr, 1.0)
+            tau2 = jnp.where(sr > 0, jnp.maximum(moment, _VAR_FLOOR), 1.0)
+            logp = _log_density(x, jnp.where(present, v, jnp.inf), mu, tau2, log_w, jnp)
+            total = jax.nn.logsumexp(logp, axis=1)
+            return (jnp.exp(logp - total[:, None]), mu, log_w, tau2, jnp.sum(total * weight), ll, it + 1, collapsed)
+
+        def going(state):
+            ll, previous, it, collapsed = state[4:]
+            return (it < iterations) & ~collapsed & ((it < 1) | (ll - previous >= tol * jnp.abs(ll) + 1e-9))
+
+        dtype = x.dtype
+        init = (resp0, jnp.zeros((k, dim), dtype), jnp.full(k, -jnp.log(k), dtype), jnp.ones((k, dim), dtype),
+                jnp.asarray(-jnp.inf, dtype), jnp.asarray(-jnp.inf, dtype), 0, jnp.asarray(False))
+        _, mu, log_w, tau2, ll, _, _, collapsed = jax.lax.while_loop(going, step, init)
+        return ll, mu, tau2, log_w, collapsed
+
+    return jax.vmap(one)(resp, active)
+
+
+def _em_fits(x, v, ks, seed):
+    """The best non-collapsed mixture of each K in `ks` over `_RESTARTS` seedings (one for
+    K = 1), all in one batched EM: `{k: (log likelihood, mu, tau2, log_w)}`."""
+    n, k_pad = len(x), max(ks)
+    n_pad = -(-n // 250) * 250  # one compilation for scans of similar size
+    rows = [(k, r) for k in ks for r in range(1 if k == 1 else _RESTARTS)]
+    resp = np.zeros((len(rows), n_pad, k_pad))
+    for b, (k, r) in enumerate(rows):
+        resp[b, np.arange(n), _lloyd_seeds(x[:, :3], k, np.random.default_rng([seed, k, r]))] = 1.0
+    active = np.arange(k_pad)[None] < np.array([k for k, _ in rows])[:, None]
+    dtype = jnp.float32  # clustering needs no more; twice as fast as float64
+    pad = [(0, n_pad - n), (0, 0)]
+    out = _em_batch(jnp.asarray(np.pad(x, pad), dtype), jnp.asarray(np.pad(v, pad, constant_values=np.inf), dtype),
+                    jnp.asarray(np.arange(n_pad) < n, dtype), jnp.asarray(resp, dtype), jnp.asarray(active))
+    ll, mu, tau2, log_w = (np.asarray(a, np.float64) for a in out[:4])
+    ok = ~np.asarray(out[4]) & np.isfinite(ll)
+    fits = {}
+    for k in ks:
+        cand = [b for b, (kb, _) in enumerate(rows) if kb == k and ok[b]]
+        if cand:
+            b = max(cand, key=lambda i: ll[i])
+            fits[k] = (ll[b], mu[b, :k], tau2[b, :k], log_w[b, :k])
+    return fits
+
+
+def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 2000,
+                  seed: int = 0) -> Materials:
+    """Cluster points into materials, K chosen by BIC.
+
+    **Arguments:** `features` `(N, D)` (the first three the colour, pd, always present for
+    observed points), `variances` `(N, D)` their observation variances (inf: missing, NaN not
+    allowed); `positions` `(N, 3)` (points with no feature at all take the label of the
+    nearest point that has one); `k_max`; `sample`: the mixture is fitted on at most this
+    many points (every point is then assigned); `seed` of that subsample and of the seeds.
+
+    **Returns:** `Materials`.
+    """
+    x, v = np.asarray(features, np.float64), np.asarray(variances, np.float64)
+    n = len(x)
+    has = np.isfinite(v).any(1)
+    idx = np.flatnonzero(has)
+    if len(idx) == 0:
+        return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
+    rng = np.random.default_rng(seed)
+    fit_idx = np.sort(rng.choice(idx, size=min(sample, len(idx)), replace=False))
+    xs, vs = x[fit_idx], v[fit_idx]
+    n_fit, dim = xs.shape
+    # A few seedings per K: k-means++ can start two components in one material, which then
+    # collapse; the best likelihood of those that do not is kept. K is searched three at a
+    # time and the search stops once two more components than the best did not pay.
+    best, bic, k_next, done = None, {}, 1, False
+    while k_next <= k_max and not done:
+        ks = list(range(k_next, min(k_max, k_next + 2) + 1))
+        fits = _em_fits(xs, vs, ks, seed)
+        for k in ks:
+            if k not in fits:
+                continue
+            bic[k] = -2.0 * fits[k][0] + (k - 1 + 2 * k * dim) * np.log(n_fit)
+            if best is None or bic[k] < bic[best[0]]:
+                best = (k, fits[k])
+            elif k >= best[0] + 2:  # two more components that did not pay: more will not
+                done = True
+                break
+        k_next = ks[-1] + 1
+    if best is None:
+        return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
+    k, (_, mu, tau2, log_w) = best
+    labels = np.zeros(n, np.int64)
+    labels[idx] = np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
+    if not has.all():
+        _, j = cKDTree(positions[idx]).query(positions[~has], k=1)
+        labels[~has] = labels[idx][j]
+    return Materials(labels, k, bic)
+
+
+@dataclass(frozen=True)
+class MaterialLobes:
+    """Per material `(K,)`: `ps`, `rho` (ln roughness), their standard deviations, the
+    number of points it rests on, and `identifiable` (ps stands `min_snr` sd above 0 and
+    `rho` is known to within 1, a factor e in roughness)."""
+
+    ps: np.ndarray
+    rho: np.ndarray
+    sd_ps: np.ndarray
+    sd_rho: np.ndarray
+    points: np.ndarray
+    identifiable: np.ndarray
+
+
+def _profile(c, a, b):
+    """chi^2 at the best ps >= 0 and that ps, elementwise."""
+    a_safe = np.where(a > 0, a, 1.0)
+    ps = np.where((a > 0) & (b > 0), b / a_safe, 0.0)
+    return c - 2.0 * ps * b + ps * ps * a, ps
+
+
+def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 3.0,
+                   peak_samples=None) -> MaterialLobes:
+    """Joint fit of one lobe per material over all its points' samples.
+
+    **Arguments:** `material_sums(rho, labels, k, weights)` with `rho` `(G, k)` ln roughness
+    per grid value and material returns `(G, 3, k)`: per material the `weights`-weighted sum
+    over its rows of the squared-residual coefficients `(c0, a, b)` of
+    `cost(ps) = c0 - 2 ps b + ps^2 a`, each row's pd profiled out
+    (`local.ChunkedRows.material_sums`); `labels` `(N,)`; `k`; `inv_s2` `(N,)` 1 / residual
+    variance scale (0 leaves a row out); `rho_grid` `(G,)` ln roughness values to search;
+    `peak_samples` `(N,)` int: each row's samples near a specular peak (`classify.T_SPEC`).
+    A material whose rows hold fewer than two is not identifiable, whatever its fit: a lobe
+    no sample saw near its peak is a smooth trend over its flank, which light the model
+    leaves out (interreflection) imitates.
+
+    **Returns:** `MaterialLobes`. The best grid value per material is refined on a finer
+    grid around it and by a parabola, whose curvature gives `sd_rho`; `sd_ps` from the
+    chi^2 curvature in ps at that roughness.
+    """
+    grid = np.asarray(rho_grid, np.float64)
+    c, a, b = np.moveaxis(material_sums(np.broadcast_to(grid[:, None], (len(grid), k)), labels, k, inv_s2), 1, 0)
+    chi2, _ = _profile(c, a, b)
+    best = np.argmin(np.where(np.isfinite(chi2), chi2, np.inf), axis=0)  # (K,)
+    step = float(np.mean(np.diff(grid)))
+    offsets = np.linspace(-step, step, 9)
+    centre = grid[best]
+    c, a, b = np.moveaxis(material_sums(centre[None] + offsets[:, None], labels, k, inv_s2), 1, 0)
+    chi2, ps_g = _profile(c, a, b)
+    j = np.clip(np.argmin(chi2, axis=0), 1, len(offsets) - 2)
+    cols = np.arange(k)
+    y0, y1, y2 = chi2[j - 1, cols], chi2[j, cols], chi2[j + 1, cols]
+    h = offsets[1] - offsets[0]
+    curv = (y0 - 2 * y1 + y2) / h**2  # d^2 chi2 / d rho^2
+    shift = np.where(curv > 0, -0.5 * (y2 - y0) / (h * np.where(curv > 0, curv, 1.0)), 0.0)
+    shift = np.clip(shift, -h, h)
+    rho = centre + offsets[j] + shift
+    c, a, b = np.moveaxis(material_sums(rho[None], labels, k, inv_s2), 1, 0)
+    _, ps = _profile(c[0], a[0], b[0])
+    sd_ps = np.where(a[0] > 0, 1.0 / np.sqrt(np.where(a[0] > 0, a[0], 1.0)), np.inf)
+    # chi2 = min + (curv / 2) d^2, so -ln L = chi2 / 2 has curvature curv / 2: var = 2 / curv.
+    sd_rho = np.where(curv > 0, np.sqrt(2.0 / np.where(curv > 0, curv, 1.0)), np.inf)
+    points = np.bincount(labels, weights=(inv_s2 > 0).astype(np.float64), minlength=k)
+    ident = (points > 0) & (ps > min_snr * sd_ps) & (sd_rho < 1.0) & np.isfinite(rho)
+    if peak_samples is not None:
+        ident &= np.bincount(labels, weights=np.asarray(peak_samples, np.float64), minlength=k) >= 2
+    return MaterialLobes(ps, rho, sd_ps, sd_rho, points, ident)
+
+
+@dataclass(frozen=True)
+class LobePrior:
+    """Per point `(N,)`: prior mean and variance of ps and of `rho` (ln roughness);
+    `available` where a prior exists (its material's lobe is identifiable or the material
+    has points with their own lobe); `spread_ps`, `spread_rho` `(K,)` the within-material
+    spreads found (variances)."""
+
+    mean_ps: np.ndarray
+    var_ps: np.ndarray
+    mean_rho: np.ndarray
+    var_rho: np.ndarray
+    available: np.ndarray
+    spread_ps: np.ndarray
+    spread_rho: np.ndarray
+
+
+def _robust_spread(deviation, own_var):
+    """Variance `t` of `deviation` `(n,)` beyond the noise `own_var` `(n,)`: the `t` at which
+    the deviations in units of `sqrt(own_var + t)` have a robust scale (scaled median
+    absolute deviation) of 1, a random-effects variance in which loose fits count little
+    and a few wrong ones cannot move it (a moment would let them). 0 unless the scale at
+    `t = 0` exceeds 1 by two of its standard errors (about `1.16 / sqrt(n)`): a spread from
+    a few points must be significant to widen a prior."""
+    n = len(deviation)
+    if n < 2:
+        return 0.0
+
+    def scale(t):
+        z = deviation / np.sqrt(own_var + t)
+        return 1.4826 * np.median(np.abs(z - np.median(z)))
+
+    if scale(0.0) <= 1.0 + 2.0 * 1.16 / np.sqrt(n):
+        return 0.0
+    hi = float(np.max(deviation**2)) + 1e-300
+    if scale(hi) > 1.0:  # the deviations' own size bounds the spread
+        return hi
+    # The scale falls as t grows (a step function of t: Brent's method brackets the step).
+    return float(brentq(lambda t: scale(t) - 1.0, 0.0, hi, xtol=1e-12 * hi, rtol=1e-10))
+
+
+def _neighbours(tree, own_idx, positions, at, k):
+    """The `k` nearest own-measured points of each point `at` (indices `(m,)`): distances and
+    indices `(m, k)`, nearest first (`tree` holds `positions[own_idx]`)."""
+    kk = min(k, len(own_idx))
+    dist, j = tree.query(positions[at], k=kk, workers=-1)
+    return np.asarray(dist).reshape(len(at), kk), own_idx[np.asarray(j).reshape(len(at), kk)]
+
+
+def _usable(at, dist, nbr, neighbours, min_distance=0.0):
+    """`(m, k)` bool: the first `neighbours` of each point's neighbours, itself left out and
+    none closer than `min_distance`."""
+    usable = (nbr != at[:, None]) & (dist >= min_distance)
+    return usable & (np.cumsum(usable, axis=1) <= neighbours)
+
+
+def _smooth_means(values, var, nbr, dist, usable, anchor, anchor_var):
+    """Precision-weighted mean of each point's `usable` neighbours' `values` (`nbr`, `dist`,
+    `usable` `(m, k)`, from `_neighbours` and `_usable`; `var` `(N,)` their variances), with
+    `anchor` (variance `anchor_var`) as one more observation. Returns `(mean, var_of_mean,
+    nearest)`, each `(m,)`: `nearest` the distance to the closest neighbour used."""
+    w = np.where(usable, 1.0 / var[nbr], 0.0)
+    w0 = 1.0 / anchor_var
+    total = w.sum(1) + w0
+    mean = (np.sum(w * values[nbr], 1) + w0 * anchor) / total
+    nearest = np.min(np.where(usable, dist, np.inf), axis=1, initial=np.inf)
+    return mean, 1.0 / total, nearest
+
+
+def _distance_levels(nearest):
+    """Distances at which a spread is measured: quantiles of the distances `nearest` from each
+    point to the closest measured lobe its mean rests on."""
+    finite = nearest[np.isfinite(nearest)]
+    return np.unique(np.quantile(finite, [0.0, 0.25, 0.5, 0.75, 0.95])) if len(finite) else np.zeros(1)
+
+
+def _distance_spread(value, var, sample, nbr, dist, levels, neighbours, centre, anchor_var, total, nearest,
+                     resolution):
+    """Spread `(N,)` of each point's value about its local mean as it grows with `nearest`
+    `(N,)`, the distance to the closest measured lobe its mean rests on. At each of `levels`
+    each measured point of `sample` (with its neighbours `nbr`, `dist` `(m, k)`) is predicted
+    from measured neighbours no closer than that distance, and the robust spread of the
+    misses (beyond their noise) is the spread there; non-decreasing in distance,
+    interpolated, at most `total`."""
+    centres, spreads = [], []
+    for level in levels:
+        usable = _usable(sample, dist, nbr, neighbours, level)
+        mean, mean_var, used = _smooth_means(value, var + total, nbr, dist, usable, centre, anchor_var + total)
+        ok = np.isfinite(used)
+        if ok.sum() >= _MIN_SPREAD_POINTS:
+            centres.append(float(np.median(used[ok])))
+            spreads.append(_robust_spread((value[sample] - mean)[ok], (var[sample] + mean_var)[ok]))
+    if not centres:
+        return np.full(len(nearest), total + resolution)
+    order = np.argsort(centres)
+    centres = np.asarray(centres)[order]
+    spreads = np.maximum.accumulate(np.minimum(np.asarray(spreads)[order], total))
+    return np.interp(np.where(np.isfinite(nearest), nearest, centres[-1]), centres, spreads) + resolution
+
+
+def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, positions,
+               neighbours: int = 16, fitted=None) -> LobePrior:
+    """Empirical-Bayes prior of every point's lobe.
+
+    **Arguments:** each point's own fit `ps`, `var_ps`, `rho`, `var_rho` `(N,)` and `own`
+    `(N,)` bool (its own samples pin its lobe); `labels` `(N,)`; `lobes` the materials'
+    joint fits; `positions` `(N, 3)`; `neighbours` measured material-mates in the local mean;
+    `fitted` `(N,)` bool: points with an own fit at all (default: finite variances).
+
+    Within each material the spread of the measured lobes about their leave-one-out local
+    means beyond their own variance is the prior's width (`_robust_spread`); it is never
+    taken below `median own variance * sqrt(2 / n)`, the resolution of a variance estimate
+    from `n` points. A material with fewer own lobes than that takes its joint lobe, as wide
+    as the robust spread of all its members' own fits about it, however loose each is.
+    """
+    n = len(ps)
+    k = len(lobes.ps)
+    if fitted is None:
+        fitted = np.isfinite(var_ps) & np.isfinite(var_rho)
+    out = {key: np.zeros(n) for key in ("mean_ps", "var_ps", "mean_rho", "var_rho")}
+    available = np.zeros(n, bool)
+    spreads = np.full((2, k), np.inf)
+    for m in range(k):
+        members = labels == m
+        mine = own & members
+        if not (lobes.identifiable[m] or mine.any()):
+            continue
+        available[members] = True
+        at = np.flatnonzero(members)
+        if mine.sum() >= _MIN_SPREAD_POINTS:
+            # Who each point's neighbours are depends on where the measured lobes are, not on
+            # their values: one search serves ps and rho, the means and the spreads.
+            own_idx = np.flatnonzero(mine)
+            tree = cKDTree(positions[own_idx])
+            dist, nbr = _neighbours(tree, own_idx, positions, at, neighbours + 1)
+            usable = _usable(at, dist, nbr, neighbours)
+            sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
+                own_idx[np.linspace(0, len(own_idx) - 1, _SPREAD_SAMPLE).astype(np.int64)]
+            s_dist, s_nbr = _neighbours(tree, own_idx, positions, sample, 4 * neighbours + 1)
+        for d, (value, var, anchor, anchor_sd) in enumerate(
+                ((ps, var_ps, lobes.ps[m], lobes.sd_ps[m]), (rho, var_rho, lobes.rho[m], lobes.sd_rho[m]))):
+            anchor_var = anchor_sd**2 if np.isfinite(anchor_sd) else np.inf
+            own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
+            if mine.sum() >= _MIN_SPREAD_POINTS:
+                centre = anchor if np.isfinite(anchor_var) else float(np.median(own_values))
+                resolution = float(np.median(own_var)) * np.sqrt(2.0 / mine.sum()) + _VAR_FLOOR
+                # Neighbours differ from the point by the material's spread, and so does the
+                # material's value: the local mean follows the measured field where it is dense.
+                total = _robust_spread(own_values - centre, own_var)
+                var_f = np.maximum(var, _VAR_FLOOR)
+                mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
+                mean[at], mean_var[at], nearest[at] = _smooth_means(
+                    value, var_f + total + resolution, nbr, dist, usable, centre, anchor_var + total + resolution)
+                spread = _distance_spread(value, var_f, sample, s_nbr, s_dist, _distance_levels(nearest[at]),
+                                          neighbours, centre, anchor_var, total, nearest, resolution)
+            elif np.isfinite(anchor_var):
+                # Too few own lobes to map the field: the material's value, as wide as the
+                # spread of every member's own fit about it (however loose each is) demands.
+                mean, mean_var = np.full(n, anchor), np.full(n, anchor_var)
+                used = members & fitted
+                spread = _robust_spread(value[used] - anchor, np.maximum(var[used], _VAR_FLOOR) + anchor_var)
+            else:  # a few own lobes and no material lobe: too little to say what the others are
+                mean, mean_var, spread = np.zeros(n), np.full(n, np.inf), np.inf
+            spread = np.broadcast_to(spread, (n,))
+            out["mean_" + ("ps", "rho")[d]][members] = mean[members]
+            out["var_" + ("ps", "rho")[d]][members] = mean_var[members] + spread[members]
+            spreads[d, m] = float(np.median(spread[members]))
+    available &= np.isfinite(out["var_ps"]) & np.isfinite(out["var_rho"]) & np.isfinite(out["mean_ps"]) \
+        & np.isfinite(out["mean_rho"])
+    for key in ("var_ps", "var_rho"):
+        out[key] = np.where(available, np.maximum(out[key], _VAR_FLOOR), np.inf)
+    for key in ("mean_ps", "mean_rho"):
+        out[key] = np.where(available, out[key], 0.0)
+    return LobePrior(out["mean_ps"], out["var_ps"], out["mean_rho"], out["var_rho"], available,
+                     spreads[0], spreads[1])
+
+
+def status_from_posterior(own, var_own_ps, var_own_rho, prior: LobePrior):
+    """`(measured, pooled)` `(N,)` bool: `measured` where the point's own samples pin its lobe
+    and carry at least the prior's precision in both ps and `rho`; `pooled` where not, but a
+    prior exists."""
+    dominates = (var_own_ps <= prior.var_ps) & (var_own_rho <= prior.var_rho)
+    measured = own & (dominates | ~prior.available)
+    return measured, ~measured & prior.available
+
+
+#: Family-wise false-alarm rate of the prior-data conflict test over all points.
+_CONFLICT_ALPHA = 0.05
+
+
+def prior_conflict(cost_posterior, cost_own, noise_scale, tested):
+    """`(N,)` bool: among the `tested` points `(N,)` bool, those whose data's chi^2 at the
+    posterior mode exceeds that at their own best fit (costs `(N,)` weighted squared
+    residuals, `noise_scale` `(N,)` their variance scale) by more than chance allows: the
+    excess is chi^2 with 2 degrees of freedom (ps, ln roughness), whose tail is
+    `exp(-x / 2)`, so over `n` tested points a threshold of `2 ln(n / alpha)` lets no point
+    cross it by chance with probability `1 - alpha` (`_CONFLICT_ALPHA`, Bonferroni). The
+    prior then describes other points than these (a glaze on part of one colour)."""
+    tested = np.asarray(tested, bool)
+    n = max(int(tested.sum()), 1)
+    delta = (np.asarray(cost_posterior) - np.asarray(cost_own)) / np.asarray(noise_scale)
+    return tested & np.isfinite(delta) & (delta > 2.0 * np.log(n / _CONFLICT_ALPHA))
