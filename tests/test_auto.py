@@ -260,8 +260,10 @@ def test_convex_scene_is_left_to_method_one(convex_scan, fresh_cache):
     options = auto.AutoOptions(radiosity=RadiosityOptions(rays=64))
     assert options.target_error == 0.0
     est = auto.estimate_auto(convex_scan, options)
-    # auto's Method I is the gated one its error model was calibrated on (`auto.measure`)
-    local = estimate_local(convex_scan, dataclasses.replace(options.local, prior=False))
+    # the decision comes from the gated Method I its error model was calibrated on (`auto.measure`);
+    # where Method I is kept, auto returns it as Method I gives it, with the shared prior
+    local = estimate_local(convex_scan, options.local)
+    assert est.meta["runs"]["local"]["options"]["prior"] and "local_prior" in est.meta["seconds"]
     a = est.meta["auto"]
     assert est.meta["method"] == "auto" and a["choice"] == "local" and a["global_method"] is None
     assert a["regions"] == [] and a["points_by_method"] == {"local": convex_scan.n_points}

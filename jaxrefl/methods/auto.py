@@ -216,8 +216,9 @@ class Measures:
     """Per-point measurements `(N,)`: `mass`, `gain_diffuse`, `gain_specular` (module
     docstring); `rel_std_pd`, `rel_std_ps` Method I's relative standard deviations of
     pd (mean over RGB) and ps, inf where the point has no estimate of its own; `local`
-    the Method I estimate they came from; `ff` the form factors; `seconds` per stage;
-    `photon_k` = sqrt(points / photons per light configuration) of Method III's settings."""
+    the Method I estimate they came from (the gated rules: the error model was built on
+    them); `ff` the form factors; `seconds` per stage; `photon_k` = sqrt(points / photons per
+    light configuration) of Method III's settings; `rows` Method I's rows (`prepare_rows`)."""
 
     mass: np.ndarray
     gain_diffuse: np.ndarray
@@ -228,6 +229,7 @@ class Measures:
     ff: FormFactors
     seconds: dict
     photon_k: float = 0.0
+    rows: dict | None = None
 
     def statistics(self) -> dict:
         """Median, 90th percentile and maximum of each measurement (relative stds over the
@@ -337,7 +339,7 @@ def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None
     rel_ps = _relative_std(local.std_ps, local.ps, local.specular_identifiable)
     k = photon_k(scan, options.photon) if "photon" in options.methods else 0.0
     seconds = {"form_factors": t_ff, "local": t_local, "measures": time.perf_counter() - t0}
-    return Measures(ff.row_sums, g, s, rel_pd, rel_ps, local, ff, seconds, k)
+    return Measures(ff.row_sums, g, s, rel_pd, rel_ps, local, ff, seconds, k, rows)
 
 
 def predict_parts(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHODS) -> dict:
@@ -662,7 +664,13 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         others[k] = _run(k, scan, options, caster, points=p.method == METHODS.index(k))
         seconds[k] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    est = dataclasses.replace(measures.local, meta=dict(measures.local.meta))
+    local = measures.local
+    if options.local.prior and not options.local.paper and p.ps_method is not None and np.any(p.ps_method == 0):
+        # Where Method I's lobes are kept, keep them as Method I gives them: with the shared prior.
+        local = estimate_local(scan, options.local, caster, rows=measures.rows)
+        seconds["local_prior"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+    est = dataclasses.replace(local, meta=dict(local.meta))
     for k, other in others.items():
         est = _merge(est, other, p.method == METHODS.index(k), p.ps_method == METHODS.index(k))
     seconds["merge"] = time.perf_counter() - t0
@@ -713,7 +721,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         "form_factors": {"rays": measures.ff.rays, "nonzeros": int(len(measures.ff.values)),
                          "mean_row_sum": float(measures.mass.mean())},
     }
-    runs = {"local": measures.local.meta, **{k: other.meta for k, other in others.items()}}
+    runs = {"local": local.meta, **{k: other.meta for k, other in others.items()}}
     est = dataclasses.replace(est, meta=_jsonable({
         "method": "auto", "model": options.local.model, "auto": auto, "seconds": seconds, "runs": runs,
         "options": {"target_error": options.target_error, "tolerance": options.tolerance, "rings": options.rings,
