@@ -650,9 +650,10 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     if float(last["cost"]) < float(best[1]):
         best = (theta, last["cost"])
     best_iteration = int(np.argmin(costs))
-    fin = _final(replay.data, replay.static, index, fg, rows, best[0])
+    fin = fin_best = _final(replay.data, replay.static, index, fg, rows, best[0])
     pd, ps, rho = (np.array(x, np.float64) for x in best[0])
     alpha = np.exp(rho)
+    method_warnings = []
 
     # Identifiability of the specular part, then the fill and pd with it.
     dof = np.asarray(_dof(rows["n_b"]), np.float64)
@@ -674,6 +675,17 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                           tuple(jnp.asarray(x, dt) for x in (pd, ps, rho)), options.polish)
         fin = _final(replay.data, replay.static, index, fg, rows, theta_f)
         pd = np.array(theta_f[0], np.float64)
+        if not float(fin["cost"]) <= float(fin_best["cost"]):
+            # The filled lobes explain the images worse than the best iterate did: the measured
+            # points' lobes do not carry over to the others. Keep the best iterate, whose other
+            # points hold Method I's lobes (step (b) moves only points with lobe evidence).
+            method_warnings.append(
+                f"Method III's lobe fill raised the image difference from {float(fin_best['cost']):.4g} to "
+                f"{float(fin['cost']):.4g}: kept the best iteration's values, the unmeasured lobes Method I's")
+            logger.warning(method_warnings[-1])
+            fin = fin_best
+            pd, ps, alpha = (np.array(x, np.float64) for x in best[0])
+            alpha = np.exp(alpha)
     else:  # no specular reflection measured anywhere: none reported, roughness undefined (0)
         ps, alpha = np.zeros_like(ps), np.zeros_like(alpha)
         status[:] = UNRESOLVED
@@ -692,7 +704,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "seconds": timings,
         "image_difference": {"cost": costs, "mean_abs": mads},
         "best_iteration": best_iteration,
-        "retraces": retraces, "ess": ess_log,
+        "retraces": retraces, "ess": ess_log, "method_warnings": method_warnings,
         "photons_per_configuration": photons, "light_configurations": n_cfg,
         "stored_photons": int(replay.n_photons),
         "gather_rays_per_observation": n_rays, "gather_entries": 0 if fg is None else int(fg.row.shape[0]),

@@ -312,10 +312,11 @@ _LOW_COVERAGE = 0.5
 
 def estimate_warnings(est, log: logging.Logger | None = logger) -> list[str]:
     """Warnings about an estimate (`jaxrefl.Estimate`): lights the checks excluded
-    (`meta['observation_checks']`; logged when they were excluded), and lobes determined by
-    the data (status `measured` or `pooled`) at fewer than half of the observed points, or
-    most of them `unresolved` (logged on `log`; None: not logged). All of them are returned
-    and kept in `est.meta['warnings']`."""
+    (`meta['observation_checks']`; logged when they were excluded), what the method itself
+    noted (`meta['method_warnings']`), and lobes determined by the data (status `measured` or
+    `pooled`) at fewer than half of the observed points, or most of them `unresolved` (these
+    two logged on `log`; None: not logged). All of them are returned and kept in
+    `est.meta['warnings']`."""
     report = est.meta.get(_MARK) or {}
     out = [f"light {k} excluded from the fit ({report['reasons'][str(k)]})" for k in report.get("excluded_lights", [])]
     coverage = []
@@ -335,6 +336,7 @@ def estimate_warnings(est, log: logging.Logger | None = logger) -> list[str]:
     if log is not None:
         for msg in coverage:
             log.warning(msg)
+    out += list(est.meta.get("method_warnings", []))
     est.meta["warnings"] = out + coverage
     return out + coverage
 
