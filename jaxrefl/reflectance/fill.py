@@ -81,16 +81,25 @@ def window_fill(values, known, adjacency: sp.csr_matrix, window: int = 5, max_sw
 
     filled = known | in_window
     far = ~filled
+    # Diffuse outwards one ring per sweep: each unfilled row next to a filled one takes the mean
+    # of its filled neighbours. Only the rows beside the last sweep's can grow, so each sweep
+    # touches those rows alone (O(N) in all; a whole-matrix product per sweep is O(N^1.5)).
+    new = np.flatnonzero(filled)
     sweeps = 0
-    while far.any() and sweeps < max_sweeps:
-        f = filled.astype(np.float64)
-        c = adjacency @ f
-        s = adjacency @ (out * f[:, None])
-        grow = ~filled & (c > 0)
-        if not grow.any():
+    adjacency = adjacency.tocsr()
+    while new.size and sweeps < max_sweeps:
+        grow = np.unique(adjacency[new].indices)
+        grow = grow[~filled[grow]]
+        if not grow.size:
             break
-        out[grow] = s[grow] / c[grow, None]
-        filled |= grow
+        rows = adjacency[grow]  # every one has a filled neighbour: no empty row
+        w = filled[rows.indices] * rows.data
+        starts = rows.indptr[:-1]
+        c = np.add.reduceat(w, starts)
+        s = np.add.reduceat(out[rows.indices] * w[:, None], starts, axis=0)
+        out[grow] = s / c[:, None]
+        filled[grow] = True
+        new = grow
         sweeps += 1
     orphan = ~filled  # components with nothing measured
     if orphan.any():
