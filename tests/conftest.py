@@ -14,6 +14,14 @@ import tempfile  # noqa: E402
 
 os.environ.setdefault("JAXREFL_CACHE", tempfile.mkdtemp(prefix="jaxrefl-test-cache-"))
 
+# ... and JAX's persistent compilation cache on from the start, as the CLI turns it on: a program
+# compiled here (the in-process CLI runs of tests/test_cli.py, float32 as the command line) is
+# loaded, not compiled again, by a subprocess that runs the same (the README's walkthrough), and
+# the other way round.
+from jaxrefl import compile_cache  # noqa: E402
+
+compile_cache.enable()
+
 # Tests import data_synth from the source tree whether or not the package is installed.
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

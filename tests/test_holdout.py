@@ -18,8 +18,10 @@ V_LIGHTS = list(range(0, 60, 5))  # 12 of the rack's 60
 
 @pytest.fixture(scope="module")
 def vase():
-    """Convex vase V, the paper's scanner (per-point lights (N, M, 3), cameras (N, 1, 3)), direct light."""
-    return make_scan("V", resolution=20, lights=V_LIGHTS, seed=0)[0]
+    """Convex vase V, the paper's scanner (per-point lights (N, M, 3), cameras (N, 1, 3)), direct light.
+    (698 points and 12 lights, 9 with a quarter held out, as the vase of `test_checks`: Method I
+    compiles once for both files.)"""
+    return make_scan("V", resolution=16, lights=V_LIGHTS, seed=0)[0]
 
 
 @pytest.fixture(scope="module")

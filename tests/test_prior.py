@@ -36,7 +36,21 @@ def sharp_sparse():
     return scan, info
 
 
-def test_shared_lobe_from_one_highlight_sample_per_point(sharp_sparse):
+@pytest.fixture(scope="module")
+def sharp_estimate(sharp_sparse):
+    """Method I on `sharp_sparse` with some options, each computed once for the module."""
+    done = {}
+
+    def estimate(**options):
+        key = tuple(sorted(options.items()))
+        if key not in done:
+            done[key] = estimate_local(sharp_sparse[0], LocalOptions(**options))
+        return done[key]
+
+    return estimate
+
+
+def test_shared_lobe_from_one_highlight_sample_per_point(sharp_sparse, sharp_estimate):
     scan, info = sharp_sparse
     rows = prepare_rows(scan)
     # The truth's specular part stands out in at most one sample of nearly every point.
@@ -47,7 +61,7 @@ def test_shared_lobe_from_one_highlight_sample_per_point(sharp_sparse):
     assert np.mean(strong.sum(1) <= 1) > 0.9
     own = fit_rows(rows, LocalOptions(model="ward"))["identifiable"]
     assert own.mean() < 0.1  # a point alone cannot pin its lobe
-    est = estimate_local(scan, LocalOptions(model="ward"))
+    est = sharp_estimate(model="ward")
     seen = est.pd_measured
     assert est.meta["materials"] == 1
     assert np.median(_rel(est.ps, scan.true_ps)[seen]) < 0.01
@@ -55,7 +69,7 @@ def test_shared_lobe_from_one_highlight_sample_per_point(sharp_sparse):
     assert np.mean(est.status[seen] == POOLED) > 0.9
     assert np.all(np.isfinite(est.std_ps[est.status == POOLED]))
     # The gated rules cannot: most points get no lobe of their own or their window's.
-    gated = estimate_local(scan, LocalOptions(model="ward", prior=False))
+    gated = sharp_estimate(model="ward", prior=False)
     assert np.median(_rel(gated.ps, scan.true_ps)[seen]) > 5 * np.median(_rel(est.ps, scan.true_ps)[seen])
 
 
@@ -144,12 +158,10 @@ def test_no_relit_value_exceeds_its_bound(model, log_ps, log_rough, light, dist)
     assert np.all(out.max(-1) <= bound * (1 + 1e-4) + 1e-300)
 
 
-def test_estimates_keep_the_energy_bound_and_status_codes(sharp_sparse):
-    scan, _ = sharp_sparse
-    for options in (LocalOptions(model="ward"), LocalOptions(model="torrance-sparrow"),
-                    LocalOptions(model="ward", prior=False)):
-        est = estimate_local(scan, options)
-        assert np.all(est.ps <= brdf.ps_bound(options.model, np.where(est.roughness > 0, est.roughness, 1.0))
+def test_estimates_keep_the_energy_bound_and_status_codes(sharp_estimate):
+    for options in ({"model": "ward"}, {"model": "torrance-sparrow"}, {"model": "ward", "prior": False}):
+        est = sharp_estimate(**options)
+        assert np.all(est.ps <= brdf.ps_bound(options["model"], np.where(est.roughness > 0, est.roughness, 1.0))
                       * (1 + 1e-9))
         assert set(np.unique(est.status)) <= {0, 1, 2, 3}
         for a in (est.pd, est.ps, est.roughness):
