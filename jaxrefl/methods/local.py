@@ -43,10 +43,14 @@ Per point, from its classified samples (`classify`):
    into materials (K by BIC), each material's lobe is fitted jointly from all its
    points' samples (a material no sample saw near a specular peak, `T_spec`, has
    none: a lobe seen only on its flank is a smooth trend that interreflection
-   imitates), the within-material spread and its growth with distance are
-   measured on the points' own lobes, and every point takes the posterior mode of
-   its own likelihood and that prior (`_map_polish`, the same variable projection
-   with the prior's precision added). `prior=False` keeps the gated rules: own
+   imitates); where cross-validation finds the lobe varying within a material, each
+   point's prior is the joint lobe of its nearest material-mates' samples
+   (`prior.local_lobes`) widened by the spread that maximises the evidence of the
+   points' own samples (`_local_spread`); elsewhere the within-material spread and its
+   growth with distance are measured on the points' own (or neighbourhood) lobes; and
+   every point takes the posterior mode of its own likelihood and that prior
+   (`_map_polish`, the same variable projection with the prior's precision added).
+   `prior=False` keeps the gated rules: own
    lobes need a `T_spec` sample; the rest pool with same-material neighbours
    (`pool.pooled_specular`) or take the window's log-mean (`fill.window_fill`);
    `paper=True` is the paper's estimator (two `T_spec` samples, window fill).
@@ -612,7 +616,22 @@ def _map_polish(prep, prior, rho_own, model, steps):
     start = jnp.where(evaluate(rel["m_rho"])[0] < evaluate(start)[0], rel["m_rho"], start)
     rho, _ = gauss_newton_1d(evaluate, start, steps, _LN_ROUGH_LO, _LN_ROUGH_HI)
     params, cost, var = _solution(model, lobe, terms, rho, prior=rel)
-    return {"params": params, "var": var, "cost": cost}
+    return {"params": params, "var": var, "cost": cost, "logdet": _lobe_logdet(model, lobe, terms, params, rel)}
+
+
+def _lobe_logdet(model, lobe, terms, params, rel):
+    """ln det of the posterior precision of (ps, ln roughness), pd profiled out (the Schur
+    complement of the Gauss-Newton matrix over pd), for unit noise: the Laplace
+    approximation's volume term of a row's evidence."""
+    ps, rho = params[3], params[4]
+    b, t = _lobes(model, lobe, rho)
+    s = _sums(terms, b, [bj * tj for bj, tj in zip(b, t)])
+    inv = terms["s11_inv"]
+    a_pp = s["s22"] + rel["l_ps"] - rowsum([s["s12"][c] ** 2 * inv[c] for c in range(3)])
+    a_pr = ps * (s["s2d"] - rowsum([s["s12"][c] * s["s1d"][c] * inv[c] for c in range(3)]))
+    a_rr = ps * ps * (s["sdd"] - rowsum([s["s1d"][c] ** 2 * inv[c] for c in range(3)])) + rel["l_rho"]
+    det = jnp.maximum(a_pp * a_rr - a_pr * a_pr, 1e-300)
+    return jnp.log(det) + 2.0 * jnp.log(terms["norm"])
 
 
 def _bucket(n: int, step: int) -> int:
@@ -691,9 +710,15 @@ class ChunkedRows:
                  for p, lab, w in zip(self.preps, self._split(labels), self._split(weights, fill=0.0))]
         return np.sum([np.asarray(x, np.float64) for x in parts], axis=0)[..., :k]
 
+    def row_sums(self, rho):
+        """`_reduced` per row: `rho` `(G, N)` ln roughness per grid value and row -> `(G, 3, N)`
+        (float64) coefficients `(c0, a, b)` of each row's squared residual, pd profiled out."""
+        parts = [_reduced(p, jnp.asarray(r), model=self.model) for p, r in zip(self.preps, self._split(rho))]
+        return np.concatenate([np.asarray(x, np.float64) for x in parts], axis=-1)[..., :self.n_rows]
+
     def map_fit(self, prior: dict, rho_own, steps: int) -> dict:
         """Posterior modes (`_map_polish`); `prior` of `(N,)` arrays; returns `params` `(N, 5)`,
-        `var` `(N, 5)` (unit noise), `cost` `(N,)`."""
+        `var` `(N, 5)` (unit noise), `cost` `(N,)` and `logdet` `(N,)` (`_map_polish`)."""
         split = {k: self._split(v) for k, v in prior.items()}
         outs = [_map_polish(p, {k: jnp.asarray(v[i]) for k, v in split.items()}, jnp.asarray(r), model=self.model,
                             steps=steps) for i, (p, r) in enumerate(zip(self.preps, self._split(rho_own)))]
@@ -862,6 +887,36 @@ def _features(fit, own, observed_any):
     return np.where(np.isfinite(x), x, 0.0), v
 
 
+#: Spreads of a neighbourhood's lobe about a point's (variances in ln ps and ln roughness)
+#: among which the evidence chooses: from far below any fit's resolution (0.1 %) to the
+#: whole range a reflectance can take (a factor e).
+_SPREADS = np.geomspace(1e-6, 1.0, 13)
+
+
+def _local_spread(chunks, local, materials, s2, rho_own, observed_any, steps):
+    """Spreads `(K, 2)` (ln ps, ln roughness) of the lobe about each point's neighbourhood
+    lobe, per material whose lobe varies (`prior.local_lobes`): those under which the
+    points' own samples are most probable (`prior.spread_by_evidence`), each row's evidence
+    in the Laplace approximation at its posterior mode: `-(chi^2 + prior penalty + ln det
+    prior covariance + ln det posterior precision) / 2`. 0 for the other materials."""
+    k, labels = materials.k, materials.labels
+    rows = prior_mod.local_prior(local, labels, np.zeros((k, 2)))[4] & observed_any
+    if not rows.any():
+        return np.zeros((k, 2))
+
+    def log_evidence(spread):
+        m_ps, v_ps, m_rho, v_rho, _ = prior_mod.local_prior(local, labels, spread)
+        post = chunks.map_fit({"m_ps": m_ps, "v_ps": v_ps, "m_rho": m_rho, "v_rho": v_rho, "s2": s2}, rho_own, steps)
+        ps, rho = post["params"][:, 3], post["params"][:, 4]
+        v_ps, v_rho = np.where(rows, v_ps, 1.0), np.where(rows, v_rho, 1.0)
+        penalty = (ps - m_ps) ** 2 / v_ps + (rho - m_rho) ** 2 / v_rho
+        return np.where(rows, -0.5 * (post["cost"] / s2 + penalty + np.log(v_ps * v_rho) + post["logdet"]
+                                      - 2.0 * np.log(s2)), 0.0)
+
+    spread = prior_mod.spread_by_evidence(log_evidence, labels, k, rows, _SPREADS)
+    return np.where(local.neighbours[:, None] > 0, spread, 0.0)
+
+
 def _posterior_lobes(scan, fit, observed_any, options):
     """The shared-prior stage of Method I (`jaxrefl.reflectance.prior`): materials, their joint lobes, the
     empirical-Bayes prior and every point's posterior mode. Returns per-point arrays and a
@@ -880,11 +935,19 @@ def _posterior_lobes(scan, fit, observed_any, options):
     seen = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k) >= 2
     own = own & seen[materials.labels]
     rho_own = np.log(fit["roughness"])
-    prior = prior_mod.lobe_prior(fit["ps"], fit["std_ps"] ** 2, rho_own, fit["std_ln_roughness"] ** 2, own,
-                                 materials.labels, lobes, scan.vertices, neighbours=options.prior_neighbours,
-                                 fitted=observed_any & np.isfinite(fit["std_ps"]) & np.isfinite(fit["std_ln_roughness"]))
     # Prior variances in units of each row's residual scale (the row solver's weights).
     s2_safe = np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0)
+    # Where the lobe varies within a material, each point's prior is its neighbourhood's lobe
+    # (cross-validated size), as wide as the spread that best explains the points' own data.
+    local = prior_mod.local_lobes(chunks.row_sums, materials.labels, materials.k, scan.vertices, inv_s2,
+                                  np.log(brdf.ROUGHNESS_GRID), ps_bound=partial(brdf.ps_bound, options.model),
+                                  min_snr=options.min_snr, peak_samples=peak,
+                                  max_neighbours=4 * options.prior_neighbours)
+    spread = _local_spread(chunks, local, materials, s2_safe, rho_own, observed_any, options.steps)
+    prior = prior_mod.lobe_prior(fit["ps"], fit["std_ps"] ** 2, rho_own, fit["std_ln_roughness"] ** 2, own,
+                                 materials.labels, lobes, scan.vertices, neighbours=options.prior_neighbours,
+                                 fitted=observed_any & np.isfinite(fit["std_ps"]) & np.isfinite(fit["std_ln_roughness"]),
+                                 local=local, spread=spread)
     post = chunks.map_fit({"m_ps": np.where(prior.available, prior.mean_ps, 0.0),
                            "v_ps": np.where(prior.available, prior.var_ps, np.inf),
                            "m_rho": np.where(prior.available, prior.mean_rho, 0.0),
@@ -908,6 +971,9 @@ def _posterior_lobes(scan, fit, observed_any, options):
                                 "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
                                 "spread_ps": float(prior.spread_ps[m]), "spread_ln_roughness": float(prior.spread_rho[m])}
                                for m in range(materials.k)]}
+    for m, entry in enumerate(meta["material_lobes"]):
+        entry["neighbours"] = int(local.neighbours[m])  # 0: the whole material
+        entry["spread_local_ps"], entry["spread_local_ln_roughness"] = (float(v) for v in spread[m])
     meta["points_in_conflict_with_prior"] = int(conflict.sum())
     return {"params": params, "sd": sd, "measured": measured & observed_any, "pooled": pooled & observed_any,
             "conflict": conflict & ~measured, "labels": materials.labels}, meta

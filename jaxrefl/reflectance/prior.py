@@ -2,7 +2,7 @@
 
 A point's own samples may pin its specular lobe (ps, ln roughness `rho`), or see it in one
 light, off-specular, or not at all. The object shares reflectance where it shares a
-material, so the lobe is modelled in two levels, every constant of which comes from the data:
+material, so the lobe is modelled in levels, every constant of which comes from the data:
 
 1. **Materials** (`fit_materials`): a diagonal Gaussian mixture over per-point features
    (pd per channel; ln ps and `rho` where the point's own lobe is measured, each with the
@@ -11,13 +11,22 @@ material, so the lobe is modelled in two levels, every constant of which comes f
 2. **A material's lobe** (`material_lobes`): the joint maximum-likelihood fit of one
    (ps, `rho`) to all the material's samples at once, every point's pd profiled out. Points
    that each see one half-angle together see many.
-3. **Within a material the lobe varies smoothly** (`lobe_prior`): the prior mean of a point is
-   the precision-weighted mean of the measured lobes among its nearest material-mates, with
+3. **Within a material the lobe may vary** (`local_lobes`): each point's neighbourhood lobe
+   is the joint fit of one lobe to the samples of its `n` nearest material-mates, itself left
+   out, `n` (1, 2, 4, ... or the whole material) chosen per material by leave-one-out
+   cross-validation of every row's own samples (the whole material unless a neighbourhood
+   predicts better by more than a standard error). Where a neighbourhood's lobe is
+   identifiable it is the point's prior, as wide as its own variance plus the field's spread
+   about it, the spread (in ln ps and ln roughness) that maximises the marginal likelihood of
+   the points' own samples (`spread_by_evidence`, type II maximum likelihood).
+4. **Elsewhere the lobe varies smoothly** (`lobe_prior`): the prior mean of a point is
+   the precision-weighted mean of the measured lobes (the points' own, or in a material whose
+   lobe varies the identifiable neighbourhood lobes) among its nearest material-mates, with
    the material's lobe as one more observation; the prior's width is the spread of the
    measured lobes about their (leave-one-out) means beyond their own noise (empirical Bayes,
-   robust method of moments), as it grows with the distance to the lobes a mean rests on,
-   never wider than the material's whole spread nor narrower than the estimate can resolve
-   from the points it rests on.
+   robust method of moments), as it grows with the distance to the lobes a mean rests on
+   (measured out to the distances the points need), never narrower than the estimate can
+   resolve from the points it rests on.
 
 Each point's estimate is then the maximum a posteriori of its own likelihood and this prior
 (the row solver lives with the likelihood, in `jaxrefl.methods.local`), and `status_from_posterior`
@@ -32,11 +41,12 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import sparse
 from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
-__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LobePrior", "lobe_prior",
-           "status_from_posterior", "prior_conflict"]
+__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
+           "LobePrior", "lobe_prior", "local_prior", "spread_by_evidence", "status_from_posterior", "prior_conflict"]
 
 _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
 #: Fewest own lobes from which a material's spread is estimated (a variance from fewer
@@ -47,6 +57,7 @@ _RESTARTS = 4  # seedings of the mixture per K
 #: likelihoods that differ by whole units, far above it.
 _EM_TOL = 1e-6
 _SPREAD_SAMPLE = 2000  # measured points a distance-dependent spread is measured on
+_SPREAD_PAIRS = 4_000_000  # most (point, neighbour) candidates searched per distance (memory)
 
 
 @dataclass(frozen=True)
@@ -277,6 +288,152 @@ def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 
 
 
 @dataclass(frozen=True)
+class LocalLobes:
+    """The lobe of each point's neighbourhood, itself left out. Per point `(N,)`: `ps`, `rho`
+    (ln roughness) of the joint fit to the samples of its nearest observed material-mates
+    (none of its own), their variances `var_ps`, `var_rho` from the fit's curvature, and
+    `identifiable` (as a material's lobe: `material_lobes`), `radius` the distance to the
+    farthest neighbour it rests on (inf: the whole material). Per material `(K,)`:
+    `neighbours`, how many neighbours cross-validation chose (0: the whole material, a lobe
+    that does not vary within the material), and `cv` `{neighbours: (K,) summed
+    chi^2}` of every candidate."""
+
+    ps: np.ndarray
+    rho: np.ndarray
+    var_ps: np.ndarray
+    var_rho: np.ndarray
+    identifiable: np.ndarray
+    radius: np.ndarray
+    neighbours: np.ndarray
+    cv: dict
+
+
+def _grid_fit(sums, grid, bound):
+    """Per column of `sums` `(G, 3, n)` (coefficients `(c0, a, b)` of `c0 - 2 ps b + ps^2 a` on
+    the ln roughness `grid` `(G,)`): the best `0 <= ps <= bound` `(G,)` and rho, refined by a
+    parabola through the grid's best value and its neighbours; variances of ps (`1 / a`) and
+    of rho (`2 / curvature` of chi^2). Returns `(ps, rho, var_ps, var_rho)`, each `(n,)`."""
+    c, a, b = sums[:, 0], sums[:, 1], sums[:, 2]
+    ps_g = np.minimum(np.where((a > 0) & (b > 0), b / np.where(a > 0, a, 1.0), 0.0), bound[:, None])
+    chi2 = c - 2.0 * ps_g * b + ps_g * ps_g * a
+    cols = np.arange(c.shape[1])
+    g = np.clip(np.argmin(np.where(np.isfinite(chi2), chi2, np.inf), axis=0), 1, len(grid) - 2)
+    h = float(grid[1] - grid[0])
+    y0, y1, y2 = chi2[g - 1, cols], chi2[g, cols], chi2[g + 1, cols]
+    curv = (y0 - 2 * y1 + y2) / h**2
+    shift = np.clip(np.where(curv > 0, -0.5 * (y2 - y0) / (h * np.where(curv > 0, curv, 1.0)), 0.0), -h, h)
+    t = shift / h
+    # The coefficients between grid values, linearly (ps and its variance at the refined rho).
+    lo = np.where(t >= 0, g, g - 1)
+    f = np.where(t >= 0, t, 1.0 + t)
+
+    def at(x):
+        return x[lo, cols] * (1.0 - f) + x[lo + 1, cols] * f
+
+    aa, bb = at(a), at(b)
+    bnd = bound[lo] * (1.0 - f) + bound[lo + 1] * f
+    ps = np.minimum(np.where((aa > 0) & (bb > 0), bb / np.where(aa > 0, aa, 1.0), 0.0), bnd)
+    var_rho = np.where(curv > 0, 2.0 / np.where(curv > 0, curv, 1.0), np.inf)
+    # ps's variance given rho is 1 / a; rho's own uncertainty moves the best ps along the
+    # profile (d ps / d rho), so its marginal variance is 1 / a + (d ps / d rho)^2 var_rho.
+    slope = (ps_g[g + 1, cols] - ps_g[g - 1, cols]) / (2 * h)
+    var_ps = np.where((aa > 0) & np.isfinite(var_rho),
+                      1.0 / np.where(aa > 0, aa, 1.0) + slope**2 * np.where(np.isfinite(var_rho), var_rho, 0.0), np.inf)
+    return ps, grid[g] + shift, var_ps, var_rho
+
+
+def _nearest_mates(labels, observed, positions, k):
+    """Sparse `(N, N)` 0/1 matrix: row `i` marks the `k` nearest observed points of `i`'s
+    material, `i` itself left out; and `(N,)` the distance to the farthest of them."""
+    n = len(labels)
+    rows, cols = [], []
+    radius = np.full(n, np.inf)
+    for m in np.unique(labels):
+        mates = np.flatnonzero((labels == m) & observed)
+        at = np.flatnonzero(labels == m)
+        if len(mates) < 2:
+            continue
+        dist, nbr = _neighbours(cKDTree(positions[mates]), mates, positions, at, k + 1)
+        use = _usable(at, dist, nbr, k)
+        rows.append(np.broadcast_to(at[:, None], nbr.shape)[use])
+        cols.append(nbr[use])
+        radius[at] = np.max(np.where(use, dist, 0.0), axis=1)
+    if not rows:
+        return sparse.csr_matrix((n, n)), radius
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), radius
+
+
+def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None, min_snr: float = 3.0,
+                peak_samples=None, max_neighbours: int = 64) -> LocalLobes:
+    """Each point's lobe from its neighbours' samples, the neighbourhood's size chosen by
+    leave-one-out cross-validation.
+
+    **Arguments:** `row_sums(rho)` with `rho` `(G, N)` ln roughness per row returns `(G, 3, N)`:
+    each row's coefficients `(c0, a, b)` of its squared residual `c0 - 2 ps b + ps^2 a`, pd
+    profiled out (`local.ChunkedRows.row_sums`); `labels` `(N,)` materials, `k` their number;
+    `positions` `(N, 3)`; `inv_s2` `(N,)` 1 / residual variance scale (0 leaves a row out);
+    `rho_grid` `(G,)` evenly spaced ln roughness; `ps_bound(roughness)` the largest physical ps
+    (`brdf.ps_bound`; None: unbounded); `min_snr`, `peak_samples` as `material_lobes`.
+
+    A point's neighbourhood is its `n` nearest observed material-mates (`n` = 1, 2, 4, ...)
+    or the whole material; its lobe is their joint maximum-likelihood fit, each row's pd
+    profiled out, and it never holds the point's own samples (`max_neighbours` the largest
+    `n` tried short of the whole material: the cost grows with it). Which a material takes is
+    decided by how well each row's own samples are predicted by the lobe fitted without them
+    (summed chi^2, leave-one-out cross-validation): a lobe that varies within the material
+    wants few neighbours, a uniform one the whole material. The whole material (one lobe, the
+    simplest model) is kept unless the best neighbourhood predicts better by more than one
+    standard error of the paired per-row differences (the one-standard-error rule: Breiman
+    et al. 1984, Hastie et al. 2009 sec. 7.10).
+
+    **Returns:** `LocalLobes`.
+    """
+    grid = np.asarray(rho_grid, np.float64)
+    n = len(labels)
+    inv_s2 = np.asarray(inv_s2, np.float64)
+    observed = inv_s2 > 0
+    peaks = np.zeros(n) if peak_samples is None else np.asarray(peak_samples, np.float64) * observed
+    bound = np.full(len(grid), np.inf) if ps_bound is None else np.asarray(ps_bound(np.exp(grid)), np.float64)
+    per = np.asarray(row_sums(np.broadcast_to(grid[:, None], (len(grid), n))), np.float64) * inv_s2
+    flat = per.reshape(-1, n)
+    onehot = sparse.csr_matrix((np.ones(n), (np.arange(n), labels)), shape=(n, k))
+    counts = np.bincount(labels, weights=observed.astype(np.float64), minlength=k)
+    sizes = [0]  # the whole material, then 1, 2, 4, ... neighbours
+    while len(sizes) < 2 or sizes[-1] < min(max_neighbours, counts.max() - 1):
+        sizes.append(2 ** (len(sizes) - 1))
+    fits, cv_rows = {}, {}
+    for size in sizes:
+        if size == 0:  # the material's sums less the point's own
+            sums = np.asarray(onehot.T @ flat.T).T[:, labels] - flat
+            peak = np.bincount(labels, weights=peaks, minlength=k)[labels] - peaks
+            radius = np.full(n, np.inf)
+        else:
+            w, radius = _nearest_mates(labels, observed, positions, size)
+            sums = np.asarray(w @ flat.T).T
+            peak = w @ peaks
+        ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(per.shape), grid, bound)
+        ident = (ps > min_snr * np.sqrt(var_ps)) & (var_rho < 1.0) & np.isfinite(rho) & (peak >= 2)
+        own = np.asarray(row_sums(rho[None]), np.float64)[0] * inv_s2
+        cv_rows[size] = np.where(observed, own[0] - 2.0 * ps * own[2] + ps * ps * own[1], 0.0)
+        fits[size] = (ps, rho, var_ps, var_rho, ident, radius)
+    chosen = np.zeros(k, np.int64)
+    cv = {size: np.bincount(labels, weights=cv_rows[size], minlength=k) for size in sizes}
+    for m in range(k):
+        rows = (labels == m) & observed
+        best = min(sizes[1:], key=lambda z: cv[z][m]) if len(sizes) > 1 and rows.any() else 0
+        d = cv_rows[0][rows] - cv_rows[best][rows]
+        chosen[m] = 0 if d.sum() <= np.std(d) * np.sqrt(rows.sum()) else best
+    pick = chosen[labels]
+    out = [np.zeros(n) for _ in range(4)] + [np.zeros(n, bool), np.zeros(n)]
+    for size in sizes:
+        at = pick == size
+        for o, v in zip(out, fits[size]):
+            o[at] = v[at]
+    return LocalLobes(*out, chosen, cv)
+
+
+@dataclass(frozen=True)
 class LobePrior:
     """Per point `(N,)`: prior mean and variance of ps and of `rho` (ln roughness);
     `available` where a prior exists (its material's lobe is identifiable or the material
@@ -344,39 +501,91 @@ def _smooth_means(values, var, nbr, dist, usable, anchor, anchor_var):
     return mean, 1.0 / total, nearest
 
 
-def _distance_levels(nearest):
+def _distance_levels(nearest, shortest=0.0):
     """Distances at which a spread is measured: quantiles of the distances `nearest` from each
-    point to the closest measured lobe its mean rests on."""
+    point to the closest measured lobe its mean rests on, none below `shortest`."""
     finite = nearest[np.isfinite(nearest)]
-    return np.unique(np.quantile(finite, [0.0, 0.25, 0.5, 0.75, 0.95])) if len(finite) else np.zeros(1)
+    levels = np.quantile(finite, [0.0, 0.25, 0.5, 0.75, 0.95]) if len(finite) else np.zeros(1)
+    return np.unique(np.maximum(levels, shortest))
 
 
-def _distance_spread(value, var, sample, nbr, dist, levels, neighbours, centre, anchor_var, total, nearest,
-                     resolution):
+def _distance_spread(value, var, tree, own_idx, positions, sample, levels, neighbours, centre, anchor_var, total,
+                     nearest, resolution):
     """Spread `(N,)` of each point's value about its local mean as it grows with `nearest`
     `(N,)`, the distance to the closest measured lobe its mean rests on. At each of `levels`
-    each measured point of `sample` (with its neighbours `nbr`, `dist` `(m, k)`) is predicted
-    from measured neighbours no closer than that distance, and the robust spread of the
-    misses (beyond their noise) is the spread there; non-decreasing in distance,
-    interpolated, at most `total`."""
+    each measured point of `sample` is predicted from its `neighbours` nearest measured points
+    no closer than that distance (`tree` holds `positions[own_idx]`), and the robust spread of
+    the misses (beyond their noise) is the spread there; non-decreasing in distance,
+    interpolated. (The search reaches as far as each level needs; the
+    sample is thinned so that it holds at most `_SPREAD_PAIRS` candidate pairs.)"""
     centres, spreads = [], []
     for level in levels:
-        usable = _usable(sample, dist, nbr, neighbours, level)
+        reach = tree.query_ball_point(positions[sample], r=np.nextafter(level, 0.0), return_length=True)
+        kk = int(min(len(own_idx), np.max(reach) + neighbours + 1))
+        sub = sample if len(sample) * kk <= _SPREAD_PAIRS else \
+            sample[np.linspace(0, len(sample) - 1, max(_SPREAD_PAIRS // kk, 1)).astype(np.int64)]
+        dist, nbr = _neighbours(tree, own_idx, positions, sub, kk)
+        usable = _usable(sub, dist, nbr, neighbours, level)
         mean, mean_var, used = _smooth_means(value, var + total, nbr, dist, usable, centre, anchor_var + total)
         ok = np.isfinite(used)
         if ok.sum() >= _MIN_SPREAD_POINTS:
             centres.append(float(np.median(used[ok])))
-            spreads.append(_robust_spread((value[sample] - mean)[ok], (var[sample] + mean_var)[ok]))
+            spreads.append(_robust_spread((value[sub] - mean)[ok], (var[sub] + mean_var)[ok]))
     if not centres:
         return np.full(len(nearest), total + resolution)
     order = np.argsort(centres)
     centres = np.asarray(centres)[order]
-    spreads = np.maximum.accumulate(np.minimum(np.asarray(spreads)[order], total))
+    spreads = np.maximum.accumulate(np.asarray(spreads)[order])
     return np.interp(np.where(np.isfinite(nearest), nearest, centres[-1]), centres, spreads) + resolution
 
 
+def local_prior(local: LocalLobes, labels, spread):
+    """`(mean_ps, var_ps, mean_rho, var_rho, field)` `(N,)`: the prior of each point whose
+    material's lobe varies (`local.neighbours` > 0) and whose neighbourhood's lobe is
+    identifiable (`field`): that lobe, as wide as its own variance plus the spread `spread`
+    `(K, 2)` of the field about it (variances in ln ps and ln roughness: `spread ps^2` in ps;
+    see `spread_by_evidence`). Elsewhere the variances are infinite (no prior)."""
+    field = local.identifiable & (local.neighbours[labels] > 0)
+    t = np.asarray(spread, np.float64).reshape(-1, 2)[labels]
+    var_ps = np.where(field, local.var_ps + t[:, 0] * local.ps**2, np.inf)
+    var_rho = np.where(field, local.var_rho + t[:, 1], np.inf)
+    return np.where(field, local.ps, 0.0), var_ps, np.where(field, local.rho, 0.0), var_rho, field
+
+
+def spread_by_evidence(log_evidence, labels, k, rows, candidates):
+    """The spreads `(K, 2)` (ln ps, ln roughness) of each material that maximise the marginal
+    likelihood of its rows' own data (empirical Bayes, type II maximum likelihood):
+    `log_evidence(spread)` returns the log evidence `(N,)` of every row under `spread`
+    `(K, 2)` (a row's depends on its material's only; `rows` `(N,)` bool say which count);
+    `candidates` the spreads tried, increasing. One spread for both first, then each in turn
+    with the other held (coordinate ascent); each time every material takes its best
+    candidate, refined by a parabola in ln spread through its neighbours."""
+    candidates = np.asarray(candidates, np.float64)
+    x = np.log(candidates)
+    spread = np.zeros((k, 2))
+
+    def best_of(make):
+        table = np.stack([np.bincount(labels, weights=np.where(rows, log_evidence(make(t)), 0.0), minlength=k)
+                          for t in candidates])  # (C, K)
+        best = np.argmax(np.where(np.isfinite(table), table, -np.inf), axis=0)
+        out = candidates[best].copy()
+        for m in range(k):
+            j = best[m]
+            if 0 < j < len(candidates) - 1:
+                y0, y1, y2 = table[j - 1, m], table[j, m], table[j + 1, m]
+                curv = y0 - 2 * y1 + y2
+                if curv < 0:
+                    out[m] = float(np.exp(x[j] + np.clip(-0.5 * (y2 - y0) / curv, -1.0, 1.0) * (x[j + 1] - x[j])))
+        return out
+
+    spread[:] = best_of(lambda t: np.full((k, 2), t))[:, None]
+    for d in (0, 1):
+        spread[:, d] = best_of(partial(lambda t, d: np.where(np.arange(2) == d, t, spread), d=d))
+    return spread
+
+
 def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, positions,
-               neighbours: int = 16, fitted=None) -> LobePrior:
+               neighbours: int = 16, fitted=None, local: LocalLobes | None = None, spread=None) -> LobePrior:
     """Empirical-Bayes prior of every point's lobe.
 
     **Arguments:** each point's own fit `ps`, `var_ps`, `rho`, `var_rho` `(N,)` and `own`
@@ -389,6 +598,12 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
     taken below `median own variance * sqrt(2 / n)`, the resolution of a variance estimate
     from `n` points. A material with fewer own lobes than that takes its joint lobe, as wide
     as the robust spread of all its members' own fits about it, however loose each is.
+
+    With `local` (`local_lobes`) and `spread` `(K, 2)`: in a material whose lobe varies (its
+    cross-validated neighbourhood is not the whole material) and which has enough points
+    with an identifiable neighbourhood lobe, those lobes are the field the prior rests on,
+    in place of the points' own: each such point's prior is its neighbourhood's lobe
+    (`local_prior`), and the others take the smooth means of those lobes as above.
     """
     n = len(ps)
     k = len(lobes.ps)
@@ -397,9 +612,16 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
     out = {key: np.zeros(n) for key in ("mean_ps", "var_ps", "mean_rho", "var_rho")}
     available = np.zeros(n, bool)
     spreads = np.full((2, k), np.inf)
+    if local is not None:
+        direct = local_prior(local, labels, np.zeros((k, 2)) if spread is None else spread)
     for m in range(k):
         members = labels == m
         mine = own & members
+        fields = (ps, var_ps, rho, var_rho)
+        field = local is not None and (direct[4] & members).sum() >= _MIN_SPREAD_POINTS
+        if field:
+            mine = direct[4] & members
+            fields = direct[:4]
         if not (lobes.identifiable[m] or mine.any()):
             continue
         available[members] = True
@@ -413,9 +635,8 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
             usable = _usable(at, dist, nbr, neighbours)
             sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
                 own_idx[np.linspace(0, len(own_idx) - 1, _SPREAD_SAMPLE).astype(np.int64)]
-            s_dist, s_nbr = _neighbours(tree, own_idx, positions, sample, 4 * neighbours + 1)
         for d, (value, var, anchor, anchor_sd) in enumerate(
-                ((ps, var_ps, lobes.ps[m], lobes.sd_ps[m]), (rho, var_rho, lobes.rho[m], lobes.sd_rho[m]))):
+                ((*fields[:2], lobes.ps[m], lobes.sd_ps[m]), (*fields[2:], lobes.rho[m], lobes.sd_rho[m]))):
             anchor_var = anchor_sd**2 if np.isfinite(anchor_sd) else np.inf
             own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
             if mine.sum() >= _MIN_SPREAD_POINTS:
@@ -428,8 +649,12 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
                 mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
                 mean[at], mean_var[at], nearest[at] = _smooth_means(
                     value, var_f + total + resolution, nbr, dist, usable, centre, anchor_var + total + resolution)
-                spread = _distance_spread(value, var_f, sample, s_nbr, s_dist, _distance_levels(nearest[at]),
-                                          neighbours, centre, anchor_var, total, nearest, resolution)
+                # Two neighbourhood lobes less than two neighbourhood radii apart share samples,
+                # so their difference understates the field's: spreads from farther apart only.
+                shortest = 2.0 * float(np.median(local.radius[mine])) if field else 0.0
+                spread = _distance_spread(value, var_f, tree, own_idx, positions, sample,
+                                          _distance_levels(nearest[at], shortest), neighbours, centre, anchor_var,
+                                          total, nearest, resolution)
             elif np.isfinite(anchor_var):
                 # Too few own lobes to map the field: the material's value, as wide as the
                 # spread of every member's own fit about it (however loose each is) demands.
@@ -442,6 +667,9 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
             out["mean_" + ("ps", "rho")[d]][members] = mean[members]
             out["var_" + ("ps", "rho")[d]][members] = mean_var[members] + spread[members]
             spreads[d, m] = float(np.median(spread[members]))
+            if field:  # where the neighbourhood's lobe is known, that is the point's prior
+                out["mean_" + ("ps", "rho")[d]][mine] = value[mine]
+                out["var_" + ("ps", "rho")[d]][mine] = var[mine]
     available &= np.isfinite(out["var_ps"]) & np.isfinite(out["var_rho"]) & np.isfinite(out["mean_ps"]) \
         & np.isfinite(out["mean_rho"])
     for key in ("var_ps", "var_rho"):
