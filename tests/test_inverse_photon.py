@@ -8,7 +8,7 @@ import pytest
 
 from data_synth.objects import fold_coordinate, make_object
 from data_synth.scans import Sensor, make_scan
-from jaxrefl.capture.session.select import select_lights
+from jaxrefl.capture.select import select_lights
 from jaxrefl.cli import main
 from jaxrefl.methods.inverse_photon import PhotonOptions, estimate_photon
 from jaxrefl.methods.local import LocalOptions, estimate_local

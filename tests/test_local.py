@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_synth.scans import Sensor, direct_radiance, make_scan
-from jaxrefl.capture.session.select import select_lights
+from jaxrefl.capture.select import select_lights
 from jaxrefl.methods.local import (
     INTERPOLATED,
     MEASURED,
