@@ -837,6 +837,8 @@ MISMATCH = [
 
 def write_report(records, run, out, plot=True):
     """`out` (markdown), the JSON next to it and (with `plot`) the error-vs-time PNG."""
+    from benchmarks.rigs_gi import _findings
+
     out = Path(out)
     ver = run["versions"]
     mach = run["machine"]
@@ -945,7 +947,7 @@ def write_report(records, run, out, plot=True):
             f"{cell(c['stock_truth_vs_clean']) if rec['global_illumination'] else '(= direct)'} | "
             f"{cell(c['scan_noise_vs_clean'])} | {c['spp']} | {c['seconds']:.0f} |")
     lines += [""] + MISMATCH
-    lines += [""] + _hand_written(out)
+    lines += [""] + _findings(out, "above")
     lines += ["## Scenes", ""]
     for rec in records:
         if "error" in rec:
@@ -974,18 +976,6 @@ def write_report(records, run, out, plot=True):
 
     payload = {**run, "flat_start": FLAT_START, "bounds": BOUNDS, "blend_weight": BLEND_WEIGHT, "scenes": records}
     out.with_suffix(".json").write_text(json.dumps(_sanitise(payload), indent=1, default=_json_default) + "\n")
-
-
-def _hand_written(path) -> list[str]:
-    """The hand-written `## Findings` section of an earlier report at `path` (kept across runs)."""
-    try:
-        text = Path(path).read_text()
-    except OSError:
-        text = ""
-    if "## Findings" in text:
-        body = text.split("## Findings", 1)[1].split("\n## ", 1)[0]
-        return ["## Findings" + body.rstrip("\n"), ""]
-    return ["## Findings", "", "(to be written by hand from the tables above)", ""]
 
 
 def plot_traces(records, path):

@@ -316,8 +316,9 @@ def _mark(met):
     return {True: "met", False: "**not met**", None: "n/a"}[met]
 
 
-def _findings(path) -> list[str]:
-    """The hand-written `## Findings` section of an earlier report at `path` (kept across runs)."""
+def _findings(path, where: str = "below") -> list[str]:
+    """The hand-written `## Findings` section of an earlier report at `path` (kept across runs);
+    a placeholder pointing at the tables `where` ("below", "above") where there is none."""
     try:
         text = Path(path).read_text()
     except OSError:
@@ -325,7 +326,7 @@ def _findings(path) -> list[str]:
     if "## Findings" in text:
         body = text.split("## Findings", 1)[1].split("\n## ", 1)[0]
         return ["## Findings" + body.rstrip("\n"), ""]
-    return ["## Findings", "", "(to be written by hand from the tables below)", ""]
+    return ["## Findings", "", f"(to be written by hand from the tables {where})", ""]
 
 
 def write_report(records, run, out, json_out=True):

@@ -43,8 +43,9 @@ def test_figure_writers_leave_the_backend_alone(tmp_path):
         matplotlib.use(before)
 
 
-#: Notebooks whose run takes minutes on two cores (Method III's iterations): the slow profile.
-SLOW = {"04_photons_iterations"}
+#: Notebooks whose run takes a minute or more on two cores (Methods II and III on Object E,
+#: Method III's iterations): the slow profile.
+SLOW = {"03_interreflections_object_E", "04_photons_iterations"}
 
 
 @pytest.mark.parametrize("path", [pytest.param(p, marks=pytest.mark.slow) if p.stem in SLOW else p

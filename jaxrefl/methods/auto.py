@@ -639,10 +639,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     errors (per method and of the plan, scene medians), regions, candidates left
     out and why, and the meta of every method run (`meta['runs']`).
     """
-    if scan.radiance is None:
-        raise ValueError("radiance: the scan has no observations to estimate from")
-    top = not checks.is_checked(scan)  # called by the user, not by another method
-    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
+    scan, top = checks.method_input(scan)  # top: called by the user, not by another method
     t_start = time.perf_counter()
     caster = caster or RayCaster(scan.vertices, scan.faces)
     measures = measure(scan, options, caster)

@@ -568,10 +568,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     truth (`_misfit`). `progress(done, total)` is called after
     every block of iterations when given.
     """
-    if scan.radiance is None:
-        raise ValueError("radiance: the scan has no observations to estimate from")
-    top = not checks.is_checked(scan)  # called by the user, not by another method
-    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
+    scan, top = checks.method_input(scan)  # top: called by the user, not by another method
     timings = {}
     t0 = time.perf_counter()
     caster = caster or RayCaster(scan.vertices, scan.faces)

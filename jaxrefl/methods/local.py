@@ -1065,10 +1065,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     **Returns:** `Estimate` (no NaN: unresolved values are filled, their
     standard deviations infinite).
     """
-    if scan.radiance is None:
-        raise ValueError("radiance: the scan has no observations to estimate from")
-    top = not checks.is_checked(scan)  # called by the user, not by another method
-    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
+    scan, top = checks.method_input(scan)  # top: called by the user, not by another method
     timings = {}
     t0 = time.perf_counter()
     rows = rows if rows is not None else prepare_rows(scan, options.thresholds, caster)

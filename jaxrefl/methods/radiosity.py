@@ -432,10 +432,7 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
     **Returns:** `Estimate` with `meta['method'] == 'radiosity'` (iterations,
     form-factor statistics and seconds per stage in `meta`).
     """
-    if scan.radiance is None:
-        raise ValueError("radiance: the scan has no observations to estimate from")
-    top = not checks.is_checked(scan)  # called by the user, not by another method
-    scan = checks.checked_scan(scan)  # bad frames out; ObservationError when nothing can be right
+    scan, top = checks.method_input(scan)  # top: called by the user, not by another method
     region = np.ones(scan.n_points, bool) if points is None else np.asarray(points, bool)
     if region.shape != (scan.n_points,) or not region.any():
         raise ValueError(f"points: must be ({scan.n_points},) bool with at least one True")

@@ -38,7 +38,7 @@ import numpy as np
 from ..status import Status
 
 __all__ = ["ObservationError", "ObservationReport", "check_observations", "exclude_bad_lights", "checked_scan",
-           "is_checked", "estimate_warnings", "IMPLIED_PD_HIGH", "IMPLIED_PD_LOW", "DARK_RATIO", "BRIGHT_RATIO"]
+           "is_checked", "method_input", "estimate_warnings", "IMPLIED_PD_HIGH", "IMPLIED_PD_LOW", "DARK_RATIO", "BRIGHT_RATIO"]
 
 logger = logging.getLogger(__name__)
 
@@ -308,6 +308,16 @@ def checked_scan(scan):
 
 #: Share of the observed points below which an estimate's lobes count as mostly unknown.
 _LOW_COVERAGE = 0.5
+
+
+def method_input(scan) -> tuple:
+    """What every method does first: `(checked_scan(scan), top)`, `top` True where `scan` had not
+    been checked yet (the caller is the user, whose warnings the method logs, not another method).
+    Raises `ValueError` for a scan without radiance, `ObservationError` where nothing can be fitted."""
+    if scan.radiance is None:
+        raise ValueError("radiance: the scan has no observations to estimate from")
+    top = not is_checked(scan)
+    return checked_scan(scan), top
 
 
 def estimate_warnings(est, log: logging.Logger | None = logger) -> list[str]:
