@@ -43,17 +43,17 @@ class Estimate:
     each point; None where no prior was fitted)."""
 
     pd: Float[np.ndarray, "N 3"]
-    ps: Float[np.ndarray, "N"]
-    roughness: Float[np.ndarray, "N"]
-    status: Int[np.ndarray, "N"]
+    ps: Float[np.ndarray, " N"]
+    roughness: Float[np.ndarray, " N"]
+    status: Int[np.ndarray, " N"]
     std_pd: Float[np.ndarray, "N 3"]
-    std_ps: Float[np.ndarray, "N"]
-    std_roughness: Float[np.ndarray, "N"]
-    specular_identifiable: Bool[np.ndarray, "N"]
-    pd_measured: Bool[np.ndarray, "N"]
+    std_ps: Float[np.ndarray, " N"]
+    std_roughness: Float[np.ndarray, " N"]
+    specular_identifiable: Bool[np.ndarray, " N"]
+    pd_measured: Bool[np.ndarray, " N"]
     model: str
     meta: dict = field(default_factory=dict)
-    material: Int[np.ndarray, "N"] | None = None
+    material: Int[np.ndarray, " N"] | None = None
 
     # Conveniences, each delegating to the module that owns the work (imported late: those
     # modules import this one).
@@ -70,7 +70,7 @@ class Estimate:
         """Write a result file atomically (`jaxrefl.result.save_result`; `load_result` reads it)."""
         save_result(path, self)
 
-    def relight(self, scan, light_pos: Float[np.ndarray, "3"], intensity: float | None = None,
+    def relight(self, scan, light_pos: Float[np.ndarray, " 3"], intensity: float | None = None,
                 **kw) -> Float[np.ndarray, "H W 3"]:
         """Linear image `(H, W, 3)` [W/(sr m^2)] of the object under a point light at
         `light_pos` `(3,)` [m] (`jaxrefl.outputs.relight.relight_image`: `camera`, `model_gi`,

@@ -52,8 +52,8 @@ from .. import srgb
 from ..geometry.mesh import area_normal_sums
 from ..geometry.raycast import RayCaster
 from ..geometry.rig import PinholeCamera
-from .images import read_image, write_png
-from .io import Scan, ScanError, atomic_write, validate_scan
+from .images import read_image
+from .io import Scan, ScanError, validate_scan
 
 __all__ = [
     "RIG_FILE",

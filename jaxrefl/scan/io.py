@@ -59,16 +59,16 @@ class Scan:
     vertices: Float[np.ndarray, "N 3"]
     faces: Int[np.ndarray, "F 3"]
     light_pos: Float[np.ndarray, "M 3"] | Float[np.ndarray, "N M 3"]
-    cam_pos: Float[np.ndarray, "3"] | Float[np.ndarray, "M 3"] | Float[np.ndarray, "N #M 3"]
-    light_intensity: Float[np.ndarray, "M"] | float = 1.0
+    cam_pos: Float[np.ndarray, " 3"] | Float[np.ndarray, "M 3"] | Float[np.ndarray, "N M 3"]
+    light_intensity: Float[np.ndarray, " M"] | float = 1.0
     normals: Float[np.ndarray, "N 3"] | None = None
     radiance: Float[np.ndarray, "N M 3"] | None = None
     valid: Bool[np.ndarray, "N M"] | None = None
     saturation: float | None = None
     true_pd: Float[np.ndarray, "N 3"] | None = None
-    true_ps: Float[np.ndarray, "N"] | None = None
-    true_sigma: Float[np.ndarray, "N"] | None = None
-    true_alpha: Float[np.ndarray, "N"] | None = None
+    true_ps: Float[np.ndarray, " N"] | None = None
+    true_sigma: Float[np.ndarray, " N"] | None = None
+    true_alpha: Float[np.ndarray, " N"] | None = None
     true_normals: Float[np.ndarray, "N 3"] | None = None
     meta: dict = field(default_factory=dict)
 
