@@ -84,7 +84,8 @@ from ..reflectance.pool import pooled_specular
 from ..result import Estimate
 from ..scan import checks
 from ..status import STATUS_NAMES, Status
-from .lm import bounded_arrow_solve, gauss_newton_1d, projected_step_terms, rowsum, spd_inverse_diagonal
+from .lm import (block_sums, bounded_arrow_solve, gauss_newton_1d, msum, projected_step_terms, rowsum,
+                 spd_inverse_diagonal)
 
 __all__ = ["Status", "MEASURED", "INTERPOLATED", "UNRESOLVED", "POOLED", "STATUS_NAMES", "LocalOptions",
            "estimate_local", "fill_unobserved_pd", "finite_outputs",
@@ -124,10 +125,10 @@ class LocalOptions:
 
 # -- closed forms ---------------------------------------------------------------------
 #
-# Inside the fit, rows lie along the last axis ("sample-major": `(M, n)`, `(M, 3, n)`)
-# and sums over the M samples are written out (`lm.rowsum`): on XLA-CPU each formula
-# is then one vectorised loop over the rows, several times faster than reducing a short
-# axis, and the host transposes the rows into this layout once (`_chunked`).
+# Inside the fit, rows lie along the last axis ("sample-major": `(M, n)`, `(M, 3, n)`),
+# so every formula is a vectorised loop over the rows and sums over the M samples are
+# reductions over the leading axis (`lm.msum`); the host transposes the rows into this
+# layout once (`_chunked`).
 
 
 def _spec_coordinates(model, s, e, cos_i, cos_o, theta_r):
@@ -155,10 +156,10 @@ def _line_fit(model, z, x, use):
     lz = jnp.log(jnp.where(use, z, 1.0))
     w = jnp.where(use, z * z, 0.0)
     w = w / jnp.maximum(jnp.max(w, axis=0), 1e-300)[None]
-    sw, sx, sy = rowsum(list(w)), rowsum(list(w * x)), rowsum(list(w * lz))
-    sxx, sxy = rowsum(list(w * x * x)), rowsum(list(w * x * lz))
+    sw, sx, sy = msum(w), msum(w * x), msum(w * lz)
+    sxx, sxy = msum(w * x * x), msum(w * x * lz)
     det = sw * sxx - sx * sx
-    enough = (rowsum(list(use.astype(jnp.int32))) >= 2) & (det > 1e-14 * jnp.maximum(sw * sxx, 1e-300))
+    enough = (msum(use.astype(jnp.int32)) >= 2) & (det > 1e-14 * jnp.maximum(sw * sxx, 1e-300))
     det = jnp.where(enough, det, 1.0)
     slope = (sw * sxy - sx * sy) / det  # d ln z / d x = -b
     a = (sy - slope * sx) / jnp.where(sw > 0, sw, 1.0)
@@ -250,9 +251,8 @@ def _diffuse_init(y, e, use, classes, theta_r, paper):
     sample of smallest theta_r (still > theta_th1); lacking any T_diff sample, the valid
     sample with the largest theta_r (it bounds pd from above)."""
     diff = use & (classes == T_DIFF)
-    m = use.shape[0]
-    num = rowsum([jnp.where(diff[j], e[j], 0.0)[None] * y[j] for j in range(m)])
-    den = rowsum([jnp.where(diff[j], e[j] * e[j], 0.0) for j in range(m)])
+    num = msum(jnp.where(diff, e, 0.0)[:, None] * y)
+    den = msum(jnp.where(diff, e * e, 0.0))
     least_squares = jnp.pi * num / jnp.maximum(den, 1e-300)[None]
 
     def single(pick):
@@ -275,7 +275,7 @@ def _specular_init(model, rows, pd, paper):
     spec_use = use & (classes == T_SPEC)
     s = jnp.mean(y, axis=1) - e * (jnp.mean(pd, axis=0) / jnp.pi)[None]  # grey specular part (M, n)
     z, x = _spec_coordinates(model, s, e, rows["cos_i"], rows["cos_o"], rows["theta_r"])
-    n_spec = rowsum(list(spec_use.astype(jnp.int32)))
+    n_spec = msum(spec_use.astype(jnp.int32))
     if paper:  # Eq. 7: the two T_spec samples with the smallest theta_r
         order = jnp.argsort(jnp.where(spec_use, rows["theta_r"], jnp.inf), axis=0)
         spec_use = spec_use & (jnp.argsort(order, axis=0) < 2)
@@ -359,41 +359,41 @@ def _weight_terms(y, lobe, ww):
     all relative to `norm` `(n,)` (yy, the cost of a zero model)."""
     a = lobe["a"]
     wa, wy = ww * a[:, None], ww * y
-    yy = rowsum(list(wy[:, 0] * y[:, 0] + wy[:, 1] * y[:, 1] + wy[:, 2] * y[:, 2]))
+    yy = msum(wy[:, 0] * y[:, 0] + wy[:, 1] * y[:, 1] + wy[:, 2] * y[:, 2])
     # Relative sums are better scaled, and dividing by a per-row value ends each sum in a
     # division, which XLA-CPU computes once instead of inlining the sum into every reader.
     norm = jnp.where(yy > 0, yy, 1.0)
-    s11 = rowsum(list(wa * a[:, None])) / norm[None]
+    s11 = msum(wa * a[:, None]) / norm[None]
     return {"wa": wa, "wsum": ww[:, 0] + ww[:, 1] + ww[:, 2],
             "wy": wy[:, 0] + wy[:, 1] + wy[:, 2], "norm": norm, "yy": yy / norm, "s11": list(s11),
             "s11_inv": list(jnp.where(s11 > 0, 1.0 / jnp.where(s11 > 0, s11, 1.0), 0.0)),
-            "b1": list(rowsum(list(wa * y)) / norm[None])}
+            "b1": list(msum(wa * y) / norm[None])}
 
 
 def _lobes(model, lobe, rho):
-    """`b_j = E_j g_j` (unit-ps specular radiance) and `t_j = d ln b_j / d rho` per sample
-    (lists of `(n,)`), at ln roughness `rho` `(n,)`."""
-    inv_r2 = jnp.exp(-2.0 * rho)
+    """`b = E g` (unit-ps specular radiance) and `t = d ln b / d rho`, each `(M, n)`, at
+    ln roughness `rho` `(n,)`."""
+    inv_r2 = jnp.exp(-2.0 * rho)[None]
     amp, x = lobe["amp"], lobe["x"]
-    m = amp.shape[0]
     if model == "torrance-sparrow":  # exp(-x / (2 r^2))
         kappa = 0.5 * inv_r2
-        b = [amp[j] * jnp.exp(-jnp.minimum(x[j] * kappa, 700.0)) for j in range(m)]
-        return b, [2.0 * kappa * x[j] for j in range(m)]
-    b = [amp[j] * inv_r2 * jnp.exp(-jnp.minimum(x[j] * inv_r2, 700.0)) for j in range(m)]  # exp(-x / r^2) / r^2
-    return b, [2.0 * inv_r2 * x[j] - 2.0 for j in range(m)]
+        return amp * jnp.exp(-jnp.minimum(x * kappa, 700.0)), 2.0 * kappa * x
+    return amp * inv_r2 * jnp.exp(-jnp.minimum(x * inv_r2, 700.0)), 2.0 * inv_r2 * x - 2.0  # exp(-x / r^2) / r^2
 
 
-def _sums(terms, b, d):
-    """Weighted sums over the samples with the lobe `b` and its derivative `d = b t`,
-    relative to `terms["norm"]`."""
-    wa, wsum, wy = terms["wa"], terms["wsum"], terms["wy"]
-    m = len(b)
-    out = [rowsum([wa[j, c] * b[j] for j in range(m)]) for c in range(3)]
-    out += [rowsum([wsum[j] * b[j] * b[j] for j in range(m)]), rowsum([wy[j] * b[j] for j in range(m)])]
-    out += [rowsum([wa[j, c] * d[j] for j in range(m)]) for c in range(3)]
-    out += [rowsum([wsum[j] * b[j] * d[j] for j in range(m)]), rowsum([wsum[j] * d[j] * d[j] for j in range(m)]),
-            rowsum([wy[j] * d[j] for j in range(m)])]
+def _sums(model, lobe, terms, rho):
+    """Weighted sums over the samples with the lobe `b` at ln roughness `rho` `(n,)` and its
+    derivative `d = b t` (`_lobes`), relative to `terms["norm"]`."""
+
+    def integrands(a):
+        b, t = _lobes(model, a, rho)
+        d = b * t
+        wa, wsum, wy = a["wa"], a["wsum"], a["wy"]
+        return [wa * b[:, None], wsum * b * b, wy * b, wa * d[:, None], wsum * b * d, wsum * d * d, wy * d]
+
+    sums = block_sums(integrands, {"amp": lobe["amp"], "x": lobe["x"], "wa": terms["wa"], "wsum": terms["wsum"],
+                                   "wy": terms["wy"]})
+    out = list(sums[0]) + sums[1:3] + list(sums[3]) + sums[4:]
     out = [x / terms["norm"] for x in out]
     return {"s12": out[:3], "s22": out[3], "b2": out[4], "s1d": out[5:8], "s2d": out[8], "sdd": out[9],
             "b2d": out[10]}
@@ -425,8 +425,7 @@ def _profile(model, lobe, terms, rho, prior=None):
     """Projected (relative) cost at `rho` `(n,)` with pd, ps solved under their bounds, half
     its derivative and half its Gauss-Newton second derivative: `(cost, g, h)`. With a
     `prior` (`_with_prior`) the cost is the negative log posterior (relative)."""
-    b, t = _lobes(model, lobe, rho)
-    s = _with_prior(_sums(terms, b, [bj * tj for bj, tj in zip(b, t)]), prior)
+    s = _with_prior(_sums(model, lobe, terms, rho), prior)
     pd, ps, free = bounded_arrow_solve(terms["s11"], terms["s11_inv"], s["s12"], s["s22"], terms["b1"], s["b2"])
     cost = _cost(terms, s, pd, ps)
     g, h = projected_step_terms(terms["s11_inv"], s["s12"], s["s22"], pd, ps, free, s["s1d"], s["s2d"], s["sdd"],
@@ -469,8 +468,7 @@ def _solution(model, lobe, terms, rho=None, params=None, prior=None):
     are the posterior mode at `rho`, the variances the posterior's; the cost is the data's."""
     if params is not None:
         rho = params[4]
-    b, t = _lobes(model, lobe, rho)
-    s = _sums(terms, b, [bj * tj for bj, tj in zip(b, t)])
+    s = _sums(model, lobe, terms, rho)
     post = _with_prior(s, prior)
     if params is None:
         pd, ps, _ = bounded_arrow_solve(terms["s11"], terms["s11_inv"], post["s12"], post["s22"], terms["b1"],
@@ -501,7 +499,7 @@ def _prepare(rows, noise_floor, model, paper):
     lobe = _lobe_terms(model, rows)
     out = {"lobe": lobe, "terms": _weight_terms(rows["y"], lobe, ww), "spec_ok": spec_ok, "n_spec": n_spec,
            "has_diff": has_diff, "p0": jnp.concatenate([jnp.clip(pd0, 0.0, 1.0), jnp.exp(ln_ps0)[None], ln_rough0[None]]),
-           "dof": 3 * rowsum(list(rows["use"].astype(jnp.int32))) - 5}
+           "dof": 3 * msum(rows["use"].astype(jnp.int32)) - 5}
     if not paper:
         # Softer weights to choose the start: with purely relative weights the dim tail
         # samples make the profile so sharp in roughness that a grid can miss its minimum.
@@ -548,19 +546,17 @@ def _polish(prep, rows, noise_floor, model, paper, solver, steps):
 
 
 def _lobe_signal(model, lobe, terms, params):
-    """Per sample (list of `(n,)`): the squared weighted size of the fitted specular part,
+    """Per sample `(M, n)`: the squared weighted size of the fitted specular part,
     `sum_c (w_jc ps b_j)^2` (its squared signal-to-noise ratio for unit residual variance)."""
     b, _ = _lobes(model, lobe, params[4])
-    return [(params[3] * bj) ** 2 * terms["wsum"][j] for j, bj in enumerate(b)]
+    return (params[3][None] * b) ** 2 * terms["wsum"]
 
 
 def _second_largest(values):
-    """Second largest of a list of `(n,)` arrays, elementwise."""
-    first, second = values[0], jnp.zeros_like(values[0])
-    for v in values[1:]:
-        second = jnp.maximum(second, jnp.minimum(first, v))
-        first = jnp.maximum(first, v)
-    return second
+    """Second largest over the samples of `values` `(M, n)`, per row (0 for one sample)."""
+    if values.shape[0] < 2:
+        return jnp.zeros_like(values[0])
+    return jnp.sort(values, axis=0)[-2]
 
 
 @partial(jax.jit, static_argnames=("model",))
@@ -570,14 +566,15 @@ def _reduced(prep, rho, model):
     a material's joint lobe fit sums over its rows."""
     lobe, terms = prep["lobe"], prep["terms"]
     wa, wsum, wy, inv, b1 = terms["wa"], terms["wsum"], terms["wy"], terms["s11_inv"], terms["b1"]
-    m = wa.shape[0]
     c0 = terms["yy"] - rowsum([b1[c] * b1[c] * inv[c] for c in range(3)])
 
     def one(r):
-        b, _ = _lobes(model, lobe, r)
-        s12 = [rowsum([wa[j, c] * b[j] for j in range(m)]) / terms["norm"] for c in range(3)]
-        s22 = rowsum([wsum[j] * b[j] * b[j] for j in range(m)]) / terms["norm"]
-        b2 = rowsum([wy[j] * b[j] for j in range(m)]) / terms["norm"]
+        def integrands(a):
+            b, _ = _lobes(model, a, r)
+            return [a["wa"] * b[:, None], a["wsum"] * b * b, a["wy"] * b]
+
+        s12, s22, b2 = block_sums(integrands, {"amp": lobe["amp"], "x": lobe["x"], "wa": wa, "wsum": wsum, "wy": wy})
+        s12, s22, b2 = list(s12 / terms["norm"][None]), s22 / terms["norm"], b2 / terms["norm"]
         a = s22 - rowsum([s12[c] * s12[c] * inv[c] for c in range(3)])
         bb = b2 - rowsum([b1[c] * s12[c] * inv[c] for c in range(3)])
         return jnp.stack([c0, a, bb]) * terms["norm"][None]
@@ -624,8 +621,7 @@ def _lobe_logdet(model, lobe, terms, params, rel):
     complement of the Gauss-Newton matrix over pd), for unit noise: the Laplace
     approximation's volume term of a row's evidence."""
     ps, rho = params[3], params[4]
-    b, t = _lobes(model, lobe, rho)
-    s = _sums(terms, b, [bj * tj for bj, tj in zip(b, t)])
+    s = _sums(model, lobe, terms, rho)
     inv = terms["s11_inv"]
     a_pp = s["s22"] + rel["l_ps"] - rowsum([s["s12"][c] ** 2 * inv[c] for c in range(3)])
     a_pr = ps * (s["s2d"] - rowsum([s["s12"][c] * s["s1d"][c] * inv[c] for c in range(3)]))

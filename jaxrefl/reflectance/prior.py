@@ -421,7 +421,11 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     cv = {size: np.bincount(labels, weights=cv_rows[size], minlength=k) for size in sizes}
     for m in range(k):
         rows = (labels == m) & observed
-        best = min(sizes[1:], key=lambda z: cv[z][m]) if len(sizes) > 1 and rows.any() else 0
+        # A neighbourhood of all the other mates is the whole material: not a candidate.
+        smaller = [z for z in sizes[1:] if z < counts[m] - 1]
+        if not smaller:
+            continue
+        best = min(smaller, key=lambda z: cv[z][m])
         d = cv_rows[0][rows] - cv_rows[best][rows]
         chosen[m] = 0 if d.sum() <= np.std(d) * np.sqrt(rows.sum()) else best
     pick = chosen[labels]
