@@ -4,6 +4,7 @@ import os
 import sys
 
 import jax
+import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
@@ -30,3 +31,12 @@ from hypothesis import settings  # noqa: E402
 
 settings.register_profile("jaxrefl", derandomize=True, deadline=None)
 settings.load_profile("jaxrefl")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Each test module's compiled programs are dropped after it: a process that keeps every
+    program of the whole suite grows by gigabytes. A later module that needs one again loads it
+    from the persistent compilation cache above."""
+    yield
+    jax.clear_caches()

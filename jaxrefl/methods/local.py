@@ -967,12 +967,15 @@ def _posterior_lobes(scan, fit, observed_any, options):
                                 "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
                                 "spread_ps": float(prior.spread_ps[m]), "spread_ln_roughness": float(prior.spread_rho[m])}
                                for m in range(materials.k)]}
+    near_peak = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k)
     for m, entry in enumerate(meta["material_lobes"]):
+        entry["samples_near_peak"] = int(near_peak[m])
         entry["neighbours"] = int(local.neighbours[m])  # 0: the whole material
         entry["spread_local_ps"], entry["spread_local_ln_roughness"] = (float(v) for v in spread[m])
     meta["points_in_conflict_with_prior"] = int(conflict.sum())
     return {"params": params, "sd": sd, "measured": measured & observed_any, "pooled": pooled & observed_any,
-            "conflict": conflict & ~measured, "labels": materials.labels}, meta
+            "conflict": conflict & ~measured, "labels": materials.labels,
+            "prior_lobe": np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan)}, meta
 
 
 def _bound_lobes(model, ps, rough) -> int:
@@ -1006,6 +1009,10 @@ def _fill_from_prior(scan, fit, observed_any, adjacency, options, values, stds, 
         ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
     else:  # no lobe anywhere: report none, roughness undefined (0)
         ps[need_spec], rough[need_spec] = 0.0, 0.0
+    # A point no fit light sees takes its material's prior lobe (the material of its nearest
+    # observed points), not a mean of lobes across a material edge; still `unresolved`.
+    blind = need_spec & np.isfinite(post["prior_lobe"][:, 0])
+    ps[blind], rough[blind] = post["prior_lobe"][blind, 0], post["prior_lobe"][blind, 1]
     # Points whose data reject their prior keep their own fit: loose, but not contradicted.
     mine = post["conflict"]
     pd[mine], ps[mine], rough[mine] = params[mine, :3], params[mine, 3], np.exp(params[mine, 4])
