@@ -23,8 +23,9 @@ Per point, from its classified samples (`classify`):
    roughness (`lm.gauss_newton_1d`). The start is whichever of the closed form
    and a 32-value roughness grid a Newton step predicts lowest (float32, softer
    weights), which keeps false minima away. All points at once: rows lie along
-   the last axis with the sums over samples written out, one compiled call per
-   chunk of rows. Standard deviations from the Gauss-Newton covariance.
+   the last axis, the sums over samples written out in blocks of eight
+   (`lm.block_sums`: the compiled program does not grow with the lights), one
+   compiled call per chunk of rows. Standard deviations from the Gauss-Newton covariance.
    `solver="optimistix"` polishes the full model with optimistix's
    Levenberg-Marquardt from both starts instead (slower; for comparison).
 4. **Identifiability** — a point's own lobe is pinned when its Gauss-Newton
@@ -126,9 +127,10 @@ class LocalOptions:
 # -- closed forms ---------------------------------------------------------------------
 #
 # Inside the fit, rows lie along the last axis ("sample-major": `(M, n)`, `(M, 3, n)`),
-# so every formula is a vectorised loop over the rows and sums over the M samples are
-# reductions over the leading axis (`lm.msum`); the host transposes the rows into this
-# layout once (`_chunked`).
+# so every formula is a vectorised loop over the rows; sums over the M samples are
+# reductions over the leading axis (`lm.msum`) once per fit, and written out in blocks
+# (`lm.block_sums`) inside its iterations. The host transposes the rows into this layout
+# once (`_chunked`).
 
 
 def _spec_coordinates(model, s, e, cos_i, cos_o, theta_r):
