@@ -837,7 +837,7 @@ MISMATCH = [
 
 def write_report(records, run, out, plot=True):
     """`out` (markdown), the JSON next to it and (with `plot`) the error-vs-time PNG."""
-    from benchmarks.rigs_gi import _findings
+    from benchmarks.rigs import _findings
 
     out = Path(out)
     ver = run["versions"]

@@ -582,6 +582,19 @@ def run_info(args, command, seconds, complete) -> dict:
             "complete": complete, "seconds": seconds}
 
 
+def _findings(path, where: str = "below") -> list[str]:
+    """The hand-written `## Findings` section of an earlier report at `path` (kept across runs);
+    a placeholder pointing at the tables `where` ("below", "above") where there is none."""
+    try:
+        text = Path(path).read_text()
+    except OSError:
+        text = ""
+    if "## Findings" in text:
+        body = text.split("## Findings", 1)[1].split("\n## ", 1)[0]
+        return ["## Findings" + body.rstrip("\n"), ""]
+    return ["## Findings", "", f"(to be written by hand from the tables {where})", ""]
+
+
 def write_report(records, run, out, json_out=True):
     """`out` (markdown) and, with `json_out`, the JSON next to it, from per-cell `records`
     (`run_cell`) and `run` (`run_info`)."""
@@ -637,6 +650,7 @@ def write_report(records, run, out, json_out=True):
     lines += ["", "## Cells", ""]
     for rec in records:
         lines += _cell_section(rec)
+    lines += ["", *_findings(out, "above")]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
     if json_out:

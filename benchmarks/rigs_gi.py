@@ -56,7 +56,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-from benchmarks.rigs import _err_string, _finite, _json_default, _sanitise  # noqa: E402
+from benchmarks.rigs import _err_string, _findings, _finite, _json_default, _sanitise  # noqa: E402
 
 METHODS = ("I", "II", "III", "auto")
 DEFAULTS = "III defaults"  # Method III at `PhotonOptions()` (1M photons, 50 iterations), run once, no target
@@ -314,19 +314,6 @@ def _x(x):
 
 def _mark(met):
     return {True: "met", False: "**not met**", None: "n/a"}[met]
-
-
-def _findings(path, where: str = "below") -> list[str]:
-    """The hand-written `## Findings` section of an earlier report at `path` (kept across runs);
-    a placeholder pointing at the tables `where` ("below", "above") where there is none."""
-    try:
-        text = Path(path).read_text()
-    except OSError:
-        text = ""
-    if "## Findings" in text:
-        body = text.split("## Findings", 1)[1].split("\n## ", 1)[0]
-        return ["## Findings" + body.rstrip("\n"), ""]
-    return ["## Findings", "", f"(to be written by hand from the tables {where})", ""]
 
 
 def write_report(records, run, out, json_out=True):
