@@ -45,13 +45,14 @@ def rowsum(terms):
     return total
 
 
-def msum(x):
-    """Sum of `x` `(M, ...)` over its leading (sample) axis."""
-    return jnp.sum(x, axis=0)
-
-
 #: Samples summed written out per step of `block_sums`' loop.
 SAMPLE_BLOCK = 8
+
+
+def msum(x):
+    """Sum of `x` `(M, ...)` over its leading (sample) axis: written out for fewer than two
+    blocks of samples (faster on XLA-CPU), a reduction beyond (a program of fixed size)."""
+    return rowsum(list(x)) if x.shape[0] < 2 * SAMPLE_BLOCK else jnp.sum(x, axis=0)
 
 
 def block_sums(integrands, arrays, block: int = SAMPLE_BLOCK):

@@ -85,7 +85,7 @@ from ..reflectance.pool import pooled_specular
 from ..result import Estimate
 from ..scan import checks
 from ..status import STATUS_NAMES, Status
-from .lm import (block_sums, bounded_arrow_solve, gauss_newton_1d, msum, projected_step_terms, rowsum,
+from .lm import (SAMPLE_BLOCK, block_sums, bounded_arrow_solve, gauss_newton_1d, msum, projected_step_terms, rowsum,
                  spd_inverse_diagonal)
 
 __all__ = ["Status", "MEASURED", "INTERPOLATED", "UNRESOLVED", "POOLED", "STATUS_NAMES", "LocalOptions",
@@ -555,10 +555,15 @@ def _lobe_signal(model, lobe, terms, params):
 
 
 def _second_largest(values):
-    """Second largest over the samples of `values` `(M, n)`, per row (0 for one sample)."""
-    if values.shape[0] < 2:
-        return jnp.zeros_like(values[0])
-    return jnp.sort(values, axis=0)[-2]
+    """Second largest over the samples of `values` `(M, n)`, per row (0 for one sample):
+    written out for a few samples (faster on XLA-CPU), a sort beyond."""
+    if values.shape[0] >= 2 * SAMPLE_BLOCK:
+        return jnp.sort(values, axis=0)[-2]
+    first, second = values[0], jnp.zeros_like(values[0])
+    for v in values[1:]:
+        second = jnp.maximum(second, jnp.minimum(first, v))
+        first = jnp.maximum(first, v)
+    return second
 
 
 @partial(jax.jit, static_argnames=("model",))

@@ -58,6 +58,7 @@ _RESTARTS = 4  # seedings of the mixture per K
 _EM_TOL = 1e-6
 _SPREAD_SAMPLE = 2000  # measured points a distance-dependent spread is measured on
 _SPREAD_PAIRS = 4_000_000  # most (point, neighbour) candidates searched per distance (memory)
+_CV_ROWS = 4000  # observed rows the neighbourhood size is cross-validated on
 
 
 @dataclass(frozen=True)
@@ -342,16 +343,17 @@ def _grid_fit(sums, grid, bound):
     return ps, grid[g] + shift, var_ps, var_rho
 
 
-def _nearest_mates(labels, observed, positions, k):
+def _nearest_mates(labels, observed, positions, k, rows_of=None):
     """Sparse `(N, N)` 0/1 matrix: row `i` marks the `k` nearest observed points of `i`'s
-    material, `i` itself left out; and `(N,)` the distance to the farthest of them."""
+    material, `i` itself left out (only the rows `rows_of` `(N,)` bool, default all); and
+    `(N,)` the distance to the farthest of them."""
     n = len(labels)
     rows, cols = [], []
     radius = np.full(n, np.inf)
     for m in np.unique(labels):
         mates = np.flatnonzero((labels == m) & observed)
-        at = np.flatnonzero(labels == m)
-        if len(mates) < 2:
+        at = np.flatnonzero((labels == m) & (True if rows_of is None else rows_of))
+        if len(mates) < 2 or len(at) == 0:
             continue
         dist, nbr = _neighbours(cKDTree(positions[mates]), mates, positions, at, k + 1)
         use = _usable(at, dist, nbr, k)
@@ -402,38 +404,53 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     sizes = [0]  # the whole material, then 1, 2, 4, ... neighbours
     while len(sizes) < 2 or sizes[-1] < min(max_neighbours, counts.max() - 1):
         sizes.append(2 ** (len(sizes) - 1))
-    fits, cv_rows = {}, {}
-    for size in sizes:
+    # Cross-validation on at most `_CV_ROWS` observed rows, evenly spread: its sums of chi^2
+    # are as good a guide with a few thousand rows, and each size costs its rows x neighbours.
+    obs_idx = np.flatnonzero(observed)
+    cv_idx = obs_idx if len(obs_idx) <= _CV_ROWS else \
+        obs_idx[np.linspace(0, len(obs_idx) - 1, _CV_ROWS).astype(np.int64)]
+
+    def fit_size(size, idx):
+        """The lobes `(ps, rho, var_ps, var_rho, ident, radius)` of rows `idx` for `size`."""
         if size == 0:  # the material's sums less the point's own
-            sums = np.asarray(onehot.T @ flat.T).T[:, labels] - flat
-            peak = np.bincount(labels, weights=peaks, minlength=k)[labels] - peaks
-            radius = np.full(n, np.inf)
+            sums = np.asarray(onehot.T @ flat.T).T[:, labels[idx]] - flat[:, idx]
+            peak = np.bincount(labels, weights=peaks, minlength=k)[labels[idx]] - peaks[idx]
+            radius = np.full(len(idx), np.inf)
         else:
-            w, radius = _nearest_mates(labels, observed, positions, size)
+            rows_of = np.zeros(n, bool)
+            rows_of[idx] = True
+            w, radius = _nearest_mates(labels, observed, positions, size, rows_of)
+            w = w[idx]
             sums = np.asarray(w @ flat.T).T
-            peak = w @ peaks
-        ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(per.shape), grid, bound)
+            peak, radius = w @ peaks, radius[idx]
+        ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(per.shape[:2] + (len(idx),)), grid, bound)
         ident = (ps > min_snr * np.sqrt(var_ps)) & (var_rho < 1.0) & np.isfinite(rho) & (peak >= 2)
-        own = np.asarray(row_sums(rho[None]), np.float64)[0] * inv_s2
-        cv_rows[size] = np.where(observed, own[0] - 2.0 * ps * own[2] + ps * ps * own[1], 0.0)
-        fits[size] = (ps, rho, var_ps, var_rho, ident, radius)
+        return ps, rho, var_ps, var_rho, ident, radius
+
+    cv_rows = {}
+    for size in sizes:
+        ps, rho = fit_size(size, cv_idx)[:2]
+        rho_all = np.zeros(n)
+        rho_all[cv_idx] = rho
+        own = (np.asarray(row_sums(rho_all[None]), np.float64)[0] * inv_s2)[:, cv_idx]
+        cv_rows[size] = own[0] - 2.0 * ps * own[2] + ps * ps * own[1]
     chosen = np.zeros(k, np.int64)
-    cv = {size: np.bincount(labels, weights=cv_rows[size], minlength=k) for size in sizes}
+    cv = {size: np.bincount(labels[cv_idx], weights=cv_rows[size], minlength=k) for size in sizes}
     for m in range(k):
-        rows = (labels == m) & observed
+        rows = labels[cv_idx] == m
         # A neighbourhood of all the other mates is the whole material: not a candidate.
         smaller = [z for z in sizes[1:] if z < counts[m] - 1]
-        if not smaller:
+        if not smaller or not rows.any():
             continue
         best = min(smaller, key=lambda z: cv[z][m])
         d = cv_rows[0][rows] - cv_rows[best][rows]
         chosen[m] = 0 if d.sum() <= np.std(d) * np.sqrt(rows.sum()) else best
     pick = chosen[labels]
     out = [np.zeros(n) for _ in range(4)] + [np.zeros(n, bool), np.zeros(n)]
-    for size in sizes:
-        at = pick == size
-        for o, v in zip(out, fits[size]):
-            o[at] = v[at]
+    for size in np.unique(pick):
+        at = np.flatnonzero(pick == size)
+        for o, v in zip(out, fit_size(int(size), at)):
+            o[at] = v
     return LocalLobes(*out, chosen, cv)
 
 
