@@ -297,7 +297,7 @@ class LocalLobes:
     farthest neighbour it rests on (inf: the whole material). Per material `(K,)`:
     `neighbours`, how many neighbours cross-validation chose (0: the whole material, a lobe
     that does not vary within the material), and `cv` `{neighbours: (K,) summed
-    chi^2}` of every candidate."""
+    chi^2}` of every candidate over the rows it was cross-validated on."""
 
     ps: np.ndarray
     rho: np.ndarray
@@ -387,7 +387,8 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     wants few neighbours, a uniform one the whole material. The whole material (one lobe, the
     simplest model) is kept unless the best neighbourhood predicts better by more than one
     standard error of the paired per-row differences (the one-standard-error rule: Breiman
-    et al. 1984, Hastie et al. 2009 sec. 7.10).
+    et al. 1984, Hastie et al. 2009 sec. 7.10). The choice is made on at most `_CV_ROWS`
+    evenly spread observed rows; only the chosen size is then fitted for every point.
 
     **Returns:** `LocalLobes`.
     """
