@@ -935,7 +935,8 @@ def _posterior_lobes(scan, fit, observed_any, options):
     lobes = prior_mod.material_lobes(chunks.material_sums, materials.labels, materials.k, inv_s2,
                                      np.log(brdf.ROUGHNESS_GRID), min_snr=options.min_snr, peak_samples=peak)
     # Own lobes count only in a material whose lobe some sample saw near its peak.
-    seen = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k) >= 2
+    near_peak = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k)
+    seen = near_peak >= 2
     own = own & seen[materials.labels]
     rho_own = np.log(fit["roughness"])
     # Prior variances in units of each row's residual scale (the row solver's weights).
@@ -974,7 +975,6 @@ def _posterior_lobes(scan, fit, observed_any, options):
                                 "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
                                 "spread_ps": float(prior.spread_ps[m]), "spread_ln_roughness": float(prior.spread_rho[m])}
                                for m in range(materials.k)]}
-    near_peak = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k)
     for m, entry in enumerate(meta["material_lobes"]):
         entry["samples_near_peak"] = int(near_peak[m])
         entry["neighbours"] = int(local.neighbours[m])  # 0: the whole material

@@ -411,11 +411,14 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     cv_idx = obs_idx if len(obs_idx) <= _CV_ROWS else \
         obs_idx[np.linspace(0, len(obs_idx) - 1, _CV_ROWS).astype(np.int64)]
 
+    material_flat = np.asarray(onehot.T @ flat.T).T  # (G * 3, K) every material's sums
+    material_peaks = np.bincount(labels, weights=peaks, minlength=k)
+
     def fit_size(size, idx):
         """The lobes `(ps, rho, var_ps, var_rho, ident, radius)` of rows `idx` for `size`."""
         if size == 0:  # the material's sums less the point's own
-            sums = np.asarray(onehot.T @ flat.T).T[:, labels[idx]] - flat[:, idx]
-            peak = np.bincount(labels, weights=peaks, minlength=k)[labels[idx]] - peaks[idx]
+            sums = material_flat[:, labels[idx]] - flat[:, idx]
+            peak = material_peaks[labels[idx]] - peaks[idx]
             radius = np.full(len(idx), np.inf)
         else:
             rows_of = np.zeros(n, bool)
