@@ -19,6 +19,7 @@ from jaxrefl.methods.local import (
 )
 from jaxrefl.outputs.holdout import split_scan
 from jaxrefl.outputs.relight import direct_radiance
+from jaxrefl.methods import local as local_mod
 from jaxrefl.reflectance import brdf, prior
 from jaxrefl.result import Estimate
 
@@ -114,6 +115,73 @@ def test_mixture_finds_clusters_with_missing_features():
     # Each true cluster maps onto one found material.
     for j in range(3):
         assert np.max(np.bincount(mats.labels[labels == j], minlength=3)) == np.sum(labels == j)
+
+
+def test_uninformative_points_take_their_neighbourhood_material():
+    """Two materials in two halves of a sphere; a quarter of the points have features so
+    loose (a dark sample below the quantisation step) that only where they lie tells their
+    material: they take their neighbours', not the more common one."""
+    rng = np.random.default_rng(1)
+    pos = rng.standard_normal((800, 3))
+    pos /= np.linalg.norm(pos, axis=1, keepdims=True)
+    labels = (pos[:, 0] > 0.3).astype(int)  # material 1 the smaller cap
+    colour = np.array([[0.6, 0.6, 0.5], [0.1, 0.5, 0.2]])[labels]
+    x, v = colour + 0.005 * rng.standard_normal((800, 3)), np.full((800, 3), 0.005**2)
+    loose = rng.random(800) < 0.25
+    x[loose] = colour[loose] + 0.3 * rng.standard_normal((loose.sum(), 3))
+    v[loose] = 0.3**2
+    mats = prior.fit_materials(x, v, pos)
+    assert mats.k == 2
+    found = mats.labels if np.mean(mats.labels[labels == 1] == 1) > 0.5 else 1 - mats.labels
+    assert np.all(found[~loose] == labels[~loose])
+    assert np.mean(found[loose] == labels[loose]) >= 0.95
+
+
+def _sphere(n, seed):
+    rng = np.random.default_rng(seed)
+    pos = rng.standard_normal((n, 3))
+    return pos / np.linalg.norm(pos, axis=1, keepdims=True), rng
+
+
+@pytest.mark.parametrize("field", ["uniform", "gradient"])
+def test_diffuse_prior_shrinks_noise_without_bias(field):
+    """pd of one material with 2 % noise per point: uniform, the prior (the material-mates'
+    field) cuts the error several fold; a steep gradient, its local plane follows it, so the
+    posterior stays unbiased at every height, also at the field's extremes; and the posterior
+    std is calibrated."""
+    pos, rng = _sphere(2000, 3)
+    true = np.full((2000, 3), 0.5) if field == "uniform" else 0.5 + 0.3 * pos[:, :1] * np.array([[1.0, 0.5, -0.5]])
+    sd = 0.02 * true
+    own = true + sd * rng.standard_normal(true.shape)
+    d = prior.diffuse_prior(own, sd**2, np.ones(2000, bool), np.zeros(2000, int), pos)
+    assert d.available.mean() > 0.99 and np.all(np.isfinite(d.spread))
+    post, std = own.copy(), sd.copy()
+    local_mod.with_prior(post, std, d.available, d.mean, d.var)
+    err_own, err_post = np.median(np.abs(own - true) / true), np.median(np.abs(post - true) / true)
+    assert err_post < (0.4 if field == "uniform" else 0.8) * err_own
+    z = np.abs(post - true) / std
+    assert 0.55 <= np.mean(z <= 1.0) <= 0.9
+    top = pos[:, 0] > 0.9  # the field's maximum in its first channel
+    assert abs(np.median((post - true)[top, 0] / true[top, 0])) < 0.5 * np.median(sd[top, 0] / true[top, 0])
+
+
+def test_diffuse_prior_leaves_a_detail_its_neighbours_do_not_share():
+    """A few points of a uniform material carry a printed dot (pd 0.2 instead of 0.6): their
+    own pd contradicts the prior (or the spread their neighbours show widens it), so they
+    keep it, and the rest of the material is still pulled together."""
+    pos, rng = _sphere(1500, 4)
+    true = np.full((1500, 3), 0.6)
+    dot = np.argsort(np.linalg.norm(pos - pos[0], axis=1))[:6]
+    true[dot] = 0.2
+    sd = 0.01 * true
+    own = true + sd * rng.standard_normal(true.shape)
+    d = prior.diffuse_prior(own, sd**2, np.ones(1500, bool), np.zeros(1500, int), pos)
+    post, std = own.copy(), sd.copy()
+    local_mod.with_prior(post, std, d.available, d.mean, d.var)
+    assert np.all(np.abs(post[dot] - 0.2) < 5 * sd[dot])
+    rest = np.ones(1500, bool)
+    rest[dot] = False
+    assert np.median(np.abs(post - true)[rest]) < 0.5 * np.median(np.abs(own - true)[rest])
 
 
 @pytest.mark.parametrize("model", sorted(brdf.MODELS))

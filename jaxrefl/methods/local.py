@@ -869,6 +869,30 @@ def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int)
     std_pd[~observed_any] = np.inf
 
 
+def with_prior(value, std, where, mean, var) -> None:
+    """In place on `value`, `std` `(N, C)` at the rows `where` `(N,)`: the Gaussian posterior
+    of an estimate `value +- std` under the prior `mean`, `var` `(N, C)` (an infinite std:
+    the prior)."""
+    v_own = np.maximum(std[where] ** 2, 1e-300)
+    precision = 1.0 / v_own + 1.0 / var[where]
+    value[where] = (value[where] / v_own + mean[where] / var[where]) / precision
+    std[where] = np.sqrt(1.0 / precision)
+
+
+def _pd_with_prior(scan, labels, observed_any, pd, std_pd, options, meta) -> None:
+    """In place: each observed point's pd (given its lobe, as the stages before left it) with
+    the empirical-Bayes prior of its material-mates' pd field (`prior.diffuse_prior`, built
+    from those same estimates); the lobes stay as they are."""
+    diffuse = prior_mod.diffuse_prior(pd, std_pd**2, observed_any, labels, scan.vertices,
+                                      neighbours=options.prior_neighbours)
+    with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
+    np.clip(pd, 0.0, 1.0, out=pd)  # the fit's bounds
+    for m, entry in enumerate(meta["material_lobes"]):
+        entry["spread_pd"] = [float(v) for v in diffuse.spread[m]]
+    meta["points_with_diffuse_prior"] = int((observed_any & diffuse.available).sum())
+    meta["points_in_conflict_with_diffuse_prior"] = int(diffuse.conflict.sum())
+
+
 def finite_outputs(values, stds) -> None:
     """In place: nothing non-finite leaves an estimator. Values never NaN (0), std may
     be inf (unknown), never NaN."""
@@ -1115,6 +1139,8 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
                                          jnp.log(np.where(ps > 0, np.maximum(rough, 1e-300), 1.0)),
                                          fit["weights"])
         pd[refit], std_pd[refit] = np.asarray(pd_fix)[refit], np.asarray(std_fix)[refit]
+    if material is not None:
+        _pd_with_prior(scan, material, observed_any, pd, std_pd, options, extra)
     fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, rough), (std_pd, std_ps, std_rough))

@@ -46,7 +46,8 @@ from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
-           "LobePrior", "lobe_prior", "local_prior", "spread_by_evidence", "status_from_posterior", "prior_conflict"]
+           "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "local_prior", "spread_by_evidence",
+           "status_from_posterior", "prior_conflict"]
 
 _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
 #: Fewest own lobes from which a material's spread is estimated (a variance from fewer
@@ -59,6 +60,8 @@ _EM_TOL = 1e-6
 _SPREAD_SAMPLE = 2000  # measured points a distance-dependent spread is measured on
 _SPREAD_PAIRS = 4_000_000  # most (point, neighbour) candidates searched per distance (memory)
 _CV_ROWS = 4000  # observed rows the neighbourhood size is cross-validated on
+#: Family-wise false-alarm rate of the prior-data conflict tests over all points.
+_CONFLICT_ALPHA = 0.05
 
 
 @dataclass(frozen=True)
@@ -211,12 +214,42 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
     if best is None:
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
     k, (_, mu, tau2, log_w) = best
+    return Materials(_spatial_labels(_log_density(x[idx], v[idx], mu, tau2, log_w) - log_w[None], idx, log_w,
+                                     positions, n), k, bic)
+
+
+#: A point's material is settled by its own features where its responsibility is at least this.
+_SETTLED = 0.99
+_LABEL_NEIGHBOURS = 16  # settled points whose labels weigh a point's materials
+
+
+def _spatial_labels(log_like, idx, log_w, positions, n):
+    """Labels `(N,)` from the per-component log likelihoods `log_like` `(len(idx), K)` of the
+    points `idx` with features: materials occupy regions, so a point's prior over them is the
+    share of each among its `_LABEL_NEIGHBOURS` nearest settled points (its own features give
+    a responsibility >= `_SETTLED` under the global weights `log_w`), with the global weights
+    as one more neighbour. A point whose own features say little (a dark channel below the
+    quantisation step, one grazing sample) then takes its neighbourhood's material, not the
+    most common one; a point with none (no usable sample) likewise."""
+    k = len(log_w)
     labels = np.zeros(n, np.int64)
-    labels[idx] = np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
-    if not has.all():
-        _, j = cKDTree(positions[idx]).query(positions[~has], k=1)
-        labels[~has] = labels[idx][j]
-    return Materials(labels, k, bic)
+    post = log_like + log_w[None]
+    resp = np.exp(post - post.max(1, keepdims=True))
+    resp /= resp.sum(1, keepdims=True)
+    settled = resp.max(1) >= _SETTLED
+    if not settled.any() or k == 1:
+        labels[idx] = np.argmax(post, 1)
+        return labels
+    anchors = idx[settled]
+    anchor_labels = np.argmax(post[settled], 1)
+    kk = min(_LABEL_NEIGHBOURS, len(anchors))
+    _, j = cKDTree(positions[anchors]).query(positions, k=kk, workers=-1)
+    j = np.asarray(j).reshape(n, kk)
+    share = (np.stack([np.sum(anchor_labels[j] == m, 1) for m in range(k)], 1) + np.exp(log_w)[None]) / (kk + 1.0)
+    local_log_w = np.log(share)
+    labels[:] = np.argmax(local_log_w, 1)
+    labels[idx] = np.argmax(log_like + local_log_w[idx], 1)
+    return labels
 
 
 @dataclass(frozen=True)
@@ -517,13 +550,43 @@ def _smooth_means(values, var, nbr, dist, usable, anchor, anchor_var):
     """Precision-weighted mean of each point's `usable` neighbours' `values` (`nbr`, `dist`,
     `usable` `(m, k)`, from `_neighbours` and `_usable`; `var` `(N,)` their variances), with
     `anchor` (variance `anchor_var`) as one more observation. Returns `(mean, var_of_mean,
-    nearest)`, each `(m,)`: `nearest` the distance to the closest neighbour used."""
+    nearest)`, each `(m,)`: `nearest` the distance to the closest neighbour used (with neither
+    neighbours nor a finite anchor: the anchor, variance inf)."""
     w = np.where(usable, 1.0 / var[nbr], 0.0)
     w0 = 1.0 / anchor_var
     total = w.sum(1) + w0
-    mean = (np.sum(w * values[nbr], 1) + w0 * anchor) / total
+    some = total > 0
+    mean = np.divide(np.sum(w * values[nbr], 1) + w0 * anchor, total, out=np.full(len(total), float(anchor)),
+                     where=some)
     nearest = np.min(np.where(usable, dist, np.inf), axis=1, initial=np.inf)
-    return mean, 1.0 / total, nearest
+    return mean, np.divide(1.0, total, out=np.full(len(total), np.inf), where=some), nearest
+
+
+#: Ridge on the slopes of a local plane, relative to the neighbours' weighted spread in
+#: position: keeps the fit defined where they lie on a line or the surface is flat (no slope
+#: along the normal), and costs a well-spread neighbourhood nothing.
+_PLANE_RIDGE = 1e-2
+
+
+def _plane_means(values, var, nbr, dist, usable, positions, at):
+    """As `_smooth_means`, without an anchor, but each point's value is the intercept of a
+    precision-weighted plane through its `usable` neighbours (positions relative to the
+    point's own): a field's gradient does not bias it, where the point lies at the edge of
+    its neighbours (a fold, a material's border) or between them. Returns `(mean,
+    var_of_mean, nearest)`, each `(m,)`."""
+    w = np.where(usable, 1.0 / var[nbr], 0.0)  # (m, k)
+    offset = positions[nbr] - positions[at][:, None]  # (m, k, 3)
+    x = np.concatenate([np.ones(w.shape + (1,)), offset], axis=2)  # (m, k, 4)
+    a = np.einsum("mk,mki,mkj->mij", w, x, x)
+    wsum = w.sum(1)
+    spread = np.einsum("mk,mki->m", w, offset**2) / np.maximum(wsum, 1e-300)
+    a[:, 1:, 1:] += (_PLANE_RIDGE * wsum * spread + 1e-300)[:, None, None] * np.eye(3)[None]
+    some = wsum > 0
+    a[~some] = np.eye(4)
+    inv = np.linalg.inv(a)
+    beta = np.einsum("mij,mj->mi", inv, np.einsum("mk,mki,mk->mi", w, x, values[nbr]))
+    nearest = np.min(np.where(usable, dist, np.inf), axis=1, initial=np.inf)
+    return np.where(some, beta[:, 0], 0.0), np.where(some, inv[:, 0, 0], np.inf), nearest
 
 
 def _distance_levels(nearest, shortest=0.0):
@@ -562,6 +625,72 @@ def _distance_spread(value, var, tree, own_idx, positions, sample, levels, neigh
     centres = np.asarray(centres)[order]
     spreads = np.maximum.accumulate(np.asarray(spreads)[order])
     return np.interp(np.where(np.isfinite(nearest), nearest, centres[-1]), centres, spreads) + resolution
+
+
+def _field_search(positions, mine, at, neighbours):
+    """The neighbour search one measured field needs (`_field_dimension`): who each point
+    `at` `(m,)` rests on depends on where the measured points `mine` `(N,)` are, not on their
+    values, so one search serves every dimension. Returns `(own_idx, tree, dist, nbr, usable,
+    sample)`."""
+    own_idx = np.flatnonzero(mine)
+    tree = cKDTree(positions[own_idx])
+    dist, nbr = _neighbours(tree, own_idx, positions, at, neighbours + 1)
+    usable = _usable(at, dist, nbr, neighbours)
+    sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
+        own_idx[np.linspace(0, len(own_idx) - 1, _SPREAD_SAMPLE).astype(np.int64)]
+    return own_idx, tree, dist, nbr, usable, sample
+
+
+def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor=0.0, anchor_var=np.inf,
+                     shortest=0.0, local=False):
+    """Prior of one quantity at the points `at` from its measured values at `mine` (at least
+    `_MIN_SPREAD_POINTS`): `value`, `var` `(N,)`; `search` from `_field_search`; the
+    material's `anchor` value (variance `anchor_var`, inf: none) one more observation.
+    Returns `(mean, var_of_mean, spread)`, each `(N,)` (set at `at`): the leave-one-out
+    precision-weighted mean of the nearest measured values and the spread of the field about
+    it at that distance (`_distance_spread`), never below the resolution of a variance from
+    `n` points, `median own variance * sqrt(2 / n)`. With `local` the mean may be a local
+    plane's (`_plane_means`, where that predicts the measured points better) and the spread
+    is never below the one its own neighbours show
+    (the mean of their squared misses beyond their variance): a material may be uniform in
+    one part and textured in another, and a spread measured over all of it, robustly, is the
+    uniform part's."""
+    own_idx, tree, dist, nbr, usable, sample = search
+    n = len(value)
+    own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
+    centre = anchor if np.isfinite(anchor_var) else float(np.median(own_values))
+    resolution = float(np.median(own_var)) * np.sqrt(2.0 / mine.sum()) + _VAR_FLOOR
+    # Neighbours differ from the point by the material's spread, and so does the material's
+    # value: the local mean follows the measured field where it is dense.
+    total = _robust_spread(own_values - centre, own_var)
+    var_f = np.maximum(var, _VAR_FLOOR)
+    mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
+    mean[at], mean_var[at], nearest[at] = _smooth_means(
+        value, var_f + total + resolution, nbr, dist, usable, centre, anchor_var + total + resolution)
+    planar = False
+    if local:
+        # A plane follows a gradient, a mean has the smaller variance: the one whose
+        # leave-one-out misses at the measured points are smaller (precision-weighted) is used.
+        plane, plane_var, _ = _plane_means(value, var_f + resolution, nbr, dist, usable, positions, at)
+        own = mine[at]
+        weight = 1.0 / var_f[at][own]
+        if np.sum(weight * (value[at][own] - plane[own]) ** 2) < np.sum(weight * (value[at][own] - mean[at][own]) ** 2):
+            mean[at], mean_var[at] = plane, plane_var
+            planar = True
+    if planar:  # the spread about the planes' leave-one-out predictions
+        spread = np.full(n, _robust_spread((value - mean)[mine], (var_f + mean_var)[mine]) + resolution)
+    else:
+        spread = _distance_spread(value, var_f, tree, own_idx, positions, sample,
+                                  _distance_levels(nearest[at], shortest), neighbours, centre, anchor_var, total,
+                                  nearest, resolution)
+    if local:
+        excess = np.where(mine, (value - mean) ** 2 - var_f - np.where(mine, mean_var, 0.0), 0.0)
+        usable = search[4]
+        count = usable.sum(1)
+        seen = np.divide(np.sum(np.where(usable, excess[search[3]], 0.0), 1), count, out=np.zeros(len(at)),
+                         where=count > 0)
+        spread[at] = np.maximum(spread[at], seen)
+    return mean, mean_var, spread
 
 
 def local_prior(local: LocalLobes, labels, spread):
@@ -652,34 +781,16 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
         available[members] = True
         at = np.flatnonzero(members)
         if mine.sum() >= _MIN_SPREAD_POINTS:
-            # Who each point's neighbours are depends on where the measured lobes are, not on
-            # their values: one search serves ps and rho, the means and the spreads.
-            own_idx = np.flatnonzero(mine)
-            tree = cKDTree(positions[own_idx])
-            dist, nbr = _neighbours(tree, own_idx, positions, at, neighbours + 1)
-            usable = _usable(at, dist, nbr, neighbours)
-            sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
-                own_idx[np.linspace(0, len(own_idx) - 1, _SPREAD_SAMPLE).astype(np.int64)]
+            search = _field_search(positions, mine, at, neighbours)
+            # Two neighbourhood lobes less than two neighbourhood radii apart share samples,
+            # so their difference understates the field's: spreads from farther apart only.
+            shortest = 2.0 * float(np.median(local.radius[mine])) if field else 0.0
         for d, (value, var, anchor, anchor_sd) in enumerate(
                 ((*fields[:2], lobes.ps[m], lobes.sd_ps[m]), (*fields[2:], lobes.rho[m], lobes.sd_rho[m]))):
             anchor_var = anchor_sd**2 if np.isfinite(anchor_sd) else np.inf
-            own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
             if mine.sum() >= _MIN_SPREAD_POINTS:
-                centre = anchor if np.isfinite(anchor_var) else float(np.median(own_values))
-                resolution = float(np.median(own_var)) * np.sqrt(2.0 / mine.sum()) + _VAR_FLOOR
-                # Neighbours differ from the point by the material's spread, and so does the
-                # material's value: the local mean follows the measured field where it is dense.
-                total = _robust_spread(own_values - centre, own_var)
-                var_f = np.maximum(var, _VAR_FLOOR)
-                mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
-                mean[at], mean_var[at], nearest[at] = _smooth_means(
-                    value, var_f + total + resolution, nbr, dist, usable, centre, anchor_var + total + resolution)
-                # Two neighbourhood lobes less than two neighbourhood radii apart share samples,
-                # so their difference understates the field's: spreads from farther apart only.
-                shortest = 2.0 * float(np.median(local.radius[mine])) if field else 0.0
-                spread = _distance_spread(value, var_f, tree, own_idx, positions, sample,
-                                          _distance_levels(nearest[at], shortest), neighbours, centre, anchor_var,
-                                          total, nearest, resolution)
+                mean, mean_var, spread = _field_dimension(value, var, mine, at, search, positions, neighbours, anchor,
+                                                          anchor_var, shortest)
             elif np.isfinite(anchor_var):
                 # Too few own lobes to map the field: the material's value, as wide as the
                 # spread of every member's own fit about it (however loose each is) demands.
@@ -705,6 +816,63 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
                      spreads[0], spreads[1])
 
 
+@dataclass(frozen=True)
+class DiffusePrior:
+    """Per point: prior `mean` and `var` of pd `(N, 3)` (var inf: no prior); `available`
+    `(N,)` where a prior exists and the point's own pd does not contradict it; `conflict`
+    `(N,)` the points whose own pd does; `spread` `(K, 3)` the median spread per material
+    and channel (variance; inf: too few points)."""
+
+    mean: np.ndarray
+    var: np.ndarray
+    available: np.ndarray
+    conflict: np.ndarray
+    spread: np.ndarray
+
+
+def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) -> DiffusePrior:
+    """Empirical-Bayes prior of every point's diffuse albedo, per material and channel, as
+    `lobe_prior` builds it for a lobe from the points' own fits: the precision-weighted mean
+    of the nearest material-mates' pd (`neighbours` of them, the point left out), as wide as
+    the spread of the field about such means beyond their noise (`_field_dimension`). A
+    uniform material's prior is narrow and pulls each point's noisy pd to the material's; a
+    textured one's is wide and leaves it. A point whose own pd differs from its prior by more
+    than chance allows over all points (chi^2 with 3 degrees of freedom, family-wise
+    `_CONFLICT_ALPHA`) is a detail the neighbours do not share: it gets no prior.
+
+    **Arguments:** `pd`, `var_pd` `(N, 3)` each point's own fit and its variance; `known`
+    `(N,)` bool the points with an own fit; `labels` `(N,)` materials; `positions` `(N, 3)`.
+    """
+    from scipy.stats import chi2
+
+    pd, var_pd = np.asarray(pd, np.float64), np.asarray(var_pd, np.float64)
+    n = len(pd)
+    k = int(labels.max()) + 1 if n else 0
+    known = np.asarray(known, bool) & np.all(np.isfinite(pd) & np.isfinite(var_pd), axis=1)
+    mean, var = np.zeros((n, 3)), np.full((n, 3), np.inf)
+    spreads = np.full((k, 3), np.inf)
+    for m in range(k):
+        members = labels == m
+        mine = known & members
+        if mine.sum() < _MIN_SPREAD_POINTS:
+            continue
+        at = np.flatnonzero(members)
+        search = _field_search(positions, mine, at, neighbours)
+        for c in range(3):
+            mu, mu_var, spread = _field_dimension(pd[:, c], var_pd[:, c], mine, at, search, positions, neighbours,
+                                                  local=True)
+            mean[at, c], var[at, c] = mu[at], np.maximum(mu_var[at] + spread[at], _VAR_FLOOR)
+            spreads[m, c] = float(np.median(spread[at]))
+    available = np.all(np.isfinite(var), axis=1)
+    tested = available & known
+    chi = np.sum((pd - mean) ** 2 / (np.where(tested[:, None], var_pd, 1.0) + var), axis=1)
+    threshold = chi2.isf(_CONFLICT_ALPHA / max(int(tested.sum()), 1), 3)
+    conflict = tested & (chi > threshold)
+    available &= ~conflict
+    return DiffusePrior(np.where(available[:, None], mean, 0.0), np.where(available[:, None], var, np.inf),
+                        available, conflict, spreads)
+
+
 def status_from_posterior(own, var_own_ps, var_own_rho, prior: LobePrior):
     """`(measured, pooled)` `(N,)` bool: `measured` where the point's own samples pin its lobe
     and carry at least the prior's precision in both ps and `rho`; `pooled` where not, but a
@@ -712,10 +880,6 @@ def status_from_posterior(own, var_own_ps, var_own_rho, prior: LobePrior):
     dominates = (var_own_ps <= prior.var_ps) & (var_own_rho <= prior.var_rho)
     measured = own & (dominates | ~prior.available)
     return measured, ~measured & prior.available
-
-
-#: Family-wise false-alarm rate of the prior-data conflict test over all points.
-_CONFLICT_ALPHA = 0.05
 
 
 def prior_conflict(cost_posterior, cost_own, noise_scale, tested):
