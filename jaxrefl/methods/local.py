@@ -879,10 +879,12 @@ def with_prior(value, std, where, mean, var) -> None:
     std[where] = np.sqrt(1.0 / precision)
 
 
-def _pd_with_prior(scan, labels, observed_any, pd, std_pd, options, meta) -> None:
+def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) -> None:
     """In place: each observed point's pd (given its lobe, as the stages before left it) with
     the empirical-Bayes prior of its material-mates' pd field (`prior.diffuse_prior`, built
-    from those same estimates); the lobes stay as they are."""
+    from those same estimates); the lobes stay as they are. A `dark` `(N, 3)` channel (every
+    sample quantised to 0) has no estimate of its own: it takes the prior."""
+    std_pd[dark] = np.inf
     diffuse = prior_mod.diffuse_prior(pd, std_pd**2, observed_any, labels, scan.vertices,
                                       neighbours=options.prior_neighbours)
     with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
@@ -902,14 +904,15 @@ def finite_outputs(values, stds) -> None:
         np.nan_to_num(a, copy=False, nan=np.inf, posinf=np.inf)
 
 
-def _features(fit, own, observed_any):
-    """Clustering features `(N, 5)` and their variances: pd per channel; ln ps and ln
-    roughness where the point's own samples pin its lobe (elsewhere missing, variance inf)."""
+def _features(fit, own, observed_any, dark):
+    """Clustering features `(N, 5)` and their variances: pd per channel (missing where
+    `dark` `(N, 3)`); ln ps and ln roughness where the point's own samples pin its lobe
+    (elsewhere missing, variance inf)."""
     ps = np.where(own, fit["ps"], 1.0)  # own lobes have ps > 0
     var_ps = np.where(own, (fit["std_ps"] / ps) ** 2, np.inf)
     var_rho = np.where(own, fit["std_ln_roughness"] ** 2, np.inf)
     x = np.c_[fit["pd"], np.log(ps), np.log(fit["roughness"])]
-    v = np.c_[fit["std_pd"] ** 2, var_ps, var_rho]
+    v = np.c_[np.where(dark, np.inf, fit["std_pd"] ** 2), var_ps, var_rho]
     v = np.where(np.isfinite(x) & np.isfinite(v) & observed_any[:, None], np.maximum(v, prior_mod._VAR_FLOOR), np.inf)
     return np.where(np.isfinite(x), x, 0.0), v
 
@@ -944,7 +947,7 @@ def _local_spread(chunks, local, materials, s2, rho_own, observed_any, steps):
     return np.where(local.neighbours[:, None] > 0, spread, 0.0)
 
 
-def _posterior_lobes(scan, fit, observed_any, options):
+def _posterior_lobes(scan, fit, observed_any, dark, options):
     """The shared-prior stage of Method I (`jaxrefl.reflectance.prior`): materials, their joint lobes, the
     empirical-Bayes prior and every point's posterior mode. Returns per-point arrays and a
     meta dict."""
@@ -952,7 +955,7 @@ def _posterior_lobes(scan, fit, observed_any, options):
     s2 = fit["noise_scale"]
     inv_s2 = np.where(np.isfinite(s2) & (s2 > 0) & observed_any, 1.0 / np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0),
                       0.0)
-    x, v = _features(fit, own, observed_any)
+    x, v = _features(fit, own, observed_any, dark)
     materials = prior_mod.fit_materials(x, v, scan.vertices, k_max=options.materials)
     chunks = fit["chunks"]
     peak = fit["spec_samples"] * observed_any
@@ -1018,7 +1021,7 @@ def _bound_lobes(model, ps, rough) -> int:
     return int(over.sum())
 
 
-def _fill_from_prior(scan, fit, observed_any, adjacency, options, values, stds, status):
+def _fill_from_prior(scan, fit, observed_any, dark, adjacency, options, values, stds, status):
     """In place on `values` (pd, ps, roughness), `stds` and `status`: the posterior modes
     (`_posterior_lobes`) where the point's own samples or its prior pin the lobe
     (`measured` / `pooled`); elsewhere the lobe of the nearest such points, `unresolved`
@@ -1026,7 +1029,7 @@ def _fill_from_prior(scan, fit, observed_any, adjacency, options, values, stds, 
     Returns `(measured, need_spec, material labels, meta)`."""
     pd, ps, rough = values
     std_pd, std_ps, std_rough = stds
-    post, meta = _posterior_lobes(scan, fit, observed_any, options)
+    post, meta = _posterior_lobes(scan, fit, observed_any, dark, options)
     known = post["measured"] | post["pooled"]
     params, sd = post["params"], post["sd"]
     pd[known], ps[known], rough[known] = params[known, :3], params[known, 3], np.exp(params[known, 4])
@@ -1113,6 +1116,8 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     t0 = time.perf_counter()
     identifiable = fit["identifiable"]
     observed_any = rows["use"].any(1)
+    # Channels whose every sample quantised to 0 only bound pd from above: not a pd of 0.
+    dark = observed_any[:, None] & ~np.any(rows["use"][..., None] & (np.asarray(rows["y"]) > 0), axis=1)
     pd, ps, rough = fit["pd"].copy(), fit["ps"].copy(), fit["roughness"].copy()
     std_pd, std_ps, std_rough = fit["std_pd"].copy(), fit["std_ps"].copy(), fit["std_roughness"].copy()
     status = np.full(scan.n_points, MEASURED, np.int8)
@@ -1120,8 +1125,8 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     adjacency = vertex_adjacency(scan.faces, scan.n_points)
     values, stds = (pd, ps, rough), (std_pd, std_ps, std_rough)
     if options.prior and not options.paper:
-        identifiable, need_spec, material, extra = _fill_from_prior(scan, fit, observed_any, adjacency, options,
-                                                                    values, stds, status)
+        identifiable, need_spec, material, extra = _fill_from_prior(scan, fit, observed_any, dark, adjacency,
+                                                                    options, values, stds, status)
         refit = need_spec & observed_any
     else:
         need_spec, use_pool = _fill_from_gates(scan, rows, fit, observed_any, adjacency, options, q, values, stds,
@@ -1140,7 +1145,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
                                          fit["weights"])
         pd[refit], std_pd[refit] = np.asarray(pd_fix)[refit], np.asarray(std_fix)[refit]
     if material is not None:
-        _pd_with_prior(scan, material, observed_any, pd, std_pd, options, extra)
+        _pd_with_prior(scan, material, observed_any, dark, pd, std_pd, options, extra)
     fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, rough), (std_pd, std_ps, std_rough))

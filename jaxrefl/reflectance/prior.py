@@ -31,6 +31,10 @@ material, so the lobe is modelled in levels, every constant of which comes from 
 Each point's estimate is then the maximum a posteriori of its own likelihood and this prior
 (the row solver lives with the likelihood, in `jaxrefl.methods.local`), and `status_from_posterior`
 names which of the two dominated.
+
+5. **pd** (`diffuse_prior`): per channel, the leave-one-out mean (or local plane) of the
+   material-mates' own pd, as wide as the field's spread about it; each point's pd given its
+   lobe is then its Gaussian posterior.
 """
 
 from __future__ import annotations
@@ -214,42 +218,12 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
     if best is None:
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
     k, (_, mu, tau2, log_w) = best
-    return Materials(_spatial_labels(_log_density(x[idx], v[idx], mu, tau2, log_w) - log_w[None], idx, log_w,
-                                     positions, n), k, bic)
-
-
-#: A point's material is settled by its own features where its responsibility is at least this.
-_SETTLED = 0.99
-_LABEL_NEIGHBOURS = 16  # settled points whose labels weigh a point's materials
-
-
-def _spatial_labels(log_like, idx, log_w, positions, n):
-    """Labels `(N,)` from the per-component log likelihoods `log_like` `(len(idx), K)` of the
-    points `idx` with features: materials occupy regions, so a point's prior over them is the
-    share of each among its `_LABEL_NEIGHBOURS` nearest settled points (its own features give
-    a responsibility >= `_SETTLED` under the global weights `log_w`), with the global weights
-    as one more neighbour. A point whose own features say little (a dark channel below the
-    quantisation step, one grazing sample) then takes its neighbourhood's material, not the
-    most common one; a point with none (no usable sample) likewise."""
-    k = len(log_w)
     labels = np.zeros(n, np.int64)
-    post = log_like + log_w[None]
-    resp = np.exp(post - post.max(1, keepdims=True))
-    resp /= resp.sum(1, keepdims=True)
-    settled = resp.max(1) >= _SETTLED
-    if not settled.any() or k == 1:
-        labels[idx] = np.argmax(post, 1)
-        return labels
-    anchors = idx[settled]
-    anchor_labels = np.argmax(post[settled], 1)
-    kk = min(_LABEL_NEIGHBOURS, len(anchors))
-    _, j = cKDTree(positions[anchors]).query(positions, k=kk, workers=-1)
-    j = np.asarray(j).reshape(n, kk)
-    share = (np.stack([np.sum(anchor_labels[j] == m, 1) for m in range(k)], 1) + np.exp(log_w)[None]) / (kk + 1.0)
-    local_log_w = np.log(share)
-    labels[:] = np.argmax(local_log_w, 1)
-    labels[idx] = np.argmax(log_like + local_log_w[idx], 1)
-    return labels
+    labels[idx] = np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
+    if not has.all():
+        _, j = cKDTree(positions[idx]).query(positions[~has], k=1)
+        labels[~has] = labels[idx][j]
+    return Materials(labels, k, bic)
 
 
 @dataclass(frozen=True)
