@@ -74,8 +74,9 @@ the few lobes measured farther off, at the edge of the highlight, are loose and
 some are wrong; averaged into the fold they send the wrong mirrored light to the
 facing surface and bias pd there (measurements: `benchmarks/RESULTS_notes.md`).
 
-**pd at the final lobes** (`polish` steps (a), undamped, lobes fixed): `pd` is
-taken to the fixed point of its own interreflection under the final lobes. The
+**pd at the final lobes** (`polish` steps (a), lobes fixed, undamped unless a step
+raises the image difference): `pd` is taken to the fixed point of its own
+interreflection under the final lobes. The
 kept iterate's `pd` was fitted against the lobes of its own iteration, which
 the fill and the damping still moved; every point is refitted, to the fixed point,
 since each point's pd depends through the interreflected light on its neighbours'
@@ -436,27 +437,52 @@ def _parts(data, static, index, fg, pd, ps, rho):
     return d + dg.astype(d.dtype), q + qg.astype(q.dtype)
 
 
+def _track(theta, damping, shape):
+    """The line search's state at a fresh start (or after a re-trace, whose photons make
+    earlier costs incomparable): `(base theta, its (D, Q) of `shape` `(N, M, 3)`, its cost,
+    step share)`."""
+    zero = jnp.zeros(shape, theta[0].dtype)
+    return theta, (zero, zero), jnp.asarray(jnp.inf, theta[0].dtype), jnp.asarray(damping, theta[0].dtype)
+
+
+def _where(flag, new, old):
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(flag, a, b), new, old)
+
+
 @partial(jax.jit, static_argnames=("static", "n_iter", "solver", "steps"))
-def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, n_iter, solver, steps, damping,
+def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_iter, solver, steps, damping,
            min_snr, min_fit_p, fill_target, affinity):
     """`n_iter` outer iterations from `theta = (pd, ps, rho)`; `best = (theta, cost)`;
-    `lobe_rows` `(K,)` int32 the points with lobe evidence (the only ones step (b) fits);
-    `affinity` `(N, K')` (or None) the material affinity of the fill's candidates `nbr`.
+    `track` the line search's state (`_track`); `lobe_rows` `(K,)` int32 the points with
+    lobe evidence (the only ones step (b) fits); `affinity` `(N, K')` (or None) the
+    material affinity of the fill's candidates `nbr`.
 
-    **Returns:** `(theta, best, history)`, `history = (cost, mean_abs)` `(n_iter,)`
+    Each iteration steps from the lowest-cost estimate so far (the base) a share of the way
+    to its steps (a) and (b): where interreflection is strong (a cavity of high albedo) the
+    steps overshoot and the plain alternation swings between states orders of magnitude
+    apart in cost. An estimate that does not lower the cost is not stepped from: the next
+    step leaves the base again with half the share (backtracking on the image difference);
+    one that does doubles it again, up to `damping`.
+
+    **Returns:** `(theta, best, track, history)`, `history = (cost, mean_abs)` `(n_iter,)`
     each: the image difference of the estimate each iteration started from."""
 
     spec_rows = {k: rows[k][lobe_rows] for k in ("lobe", "n_b", "joint")}
 
     def body(carry, _):
-        (pd, ps, rho), (best_theta, best_cost) = carry
+        (pd, ps, rho), (best_theta, best_cost), (base, base_dq, base_cost, share) = carry
         d, q = _parts(data, static, index, fg, pd, ps, rho)
         cost, mad = _image_difference(pd, ps, rho, rows, d, q)
         better = cost < best_cost
-        best_theta = jax.tree_util.tree_map(lambda new, old: jnp.where(better, new, old), (pd, ps, rho), best_theta)
+        best_theta = _where(better, (pd, ps, rho), best_theta)
         best_cost = jnp.where(better, cost, best_cost)
+        lower = cost < base_cost
+        base, (d, q) = _where(lower, (pd, ps, rho), base), _where(lower, (d, q), base_dq)
+        base_cost = jnp.where(lower, cost, base_cost)
+        share = jnp.where(lower, jnp.minimum(2.0 * share, damping), 0.5 * share)
+        pd, ps, rho = base
         pd_new, _ = _step_a(pd, ps, rho, rows, d, q)
-        pd = pd + damping * (pd_new - pd)
+        pd = pd + share * (pd_new - pd)
         # Step (b) only where a lobe can be measured at all (the rows `lobe_rows`).
         args = tuple(a[lobe_rows] for a in _spec_args(pd, rows, d, q))
         if solver == "lm":
@@ -474,27 +500,39 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, n_iter, s
         ps_new, rho_new = ps.at[lobe_rows].set(ps_k), rho.at[lobe_rows].set(rho_k)
         ps_new, rho_new = _fill_lobes(jnp.where(known, ps_new, ps), jnp.where(known, rho_new, rho), known,
                                       sd_ps, sd_rho, nbr, fill_target, steps=4, warm=True, affinity=affinity)
-        ps = ps + damping * (ps_new - ps)
-        rho = rho + damping * (rho_new - rho)
-        return ((pd, ps, rho), (best_theta, best_cost)), (cost, mad)
+        ps = ps + share * (ps_new - ps)
+        rho = rho + share * (rho_new - rho)
+        return ((pd, ps, rho), (best_theta, best_cost), (base, (d, q), base_cost, share)), (cost, mad)
 
-    (theta, best), hist = jax.lax.scan(body, (theta, best), None, length=n_iter)
-    return theta, best, hist
+    (theta, best, track), hist = jax.lax.scan(body, (theta, best, track), None, length=n_iter)
+    return theta, best, track, hist
 
 
 @partial(jax.jit, static_argnames=("static", "n_iter"))
 def _polish(data, static, index, fg, rows, theta, n_iter):
     """`n_iter` steps (a) at the final lobes: `pd` to the fixed point of its own
-    interreflection (undamped: with the lobes fixed, step (a) alone converges, the
-    interreflected share of the light being below 1). Returns `theta`."""
+    interreflection, undamped where that lowers the image difference (the interreflected
+    share of the light below 1), with `_block`'s backtracking where it does not (a cavity
+    of high albedo). Returns `theta` at the lowest image difference met."""
+    _, ps, rho = theta
 
-    def body(pd, _):
+    def body(carry, _):
+        pd, (base, base_dq, base_cost, share) = carry
         d, q = _parts(data, static, index, fg, pd, ps, rho)
-        return _step_a(pd, ps, rho, rows, d, q)[0], None
+        cost, _ = _image_difference(pd, ps, rho, rows, d, q)
+        lower = cost < base_cost
+        base, (d, q) = _where(lower, pd, base), _where(lower, (d, q), base_dq)
+        base_cost = jnp.where(lower, cost, base_cost)
+        share = jnp.where(lower, jnp.minimum(2.0 * share, 1.0), 0.5 * share)
+        pd = base + share * (_step_a(base, ps, rho, rows, d, q)[0] - base)
+        return (pd, (base, (d, q), base_cost, share)), None
 
-    pd, ps, rho = theta
-    pd, _ = jax.lax.scan(body, pd, None, length=n_iter)
-    return pd, ps, rho
+    _, dq, cost, share = _track(theta, 1.0, rows["y"].shape)
+    (pd, (base, dq, cost, _)), _ = jax.lax.scan(body, (theta[0], (theta[0], dq, cost, share)), None,
+                                                length=n_iter)
+    d, q = _parts(data, static, index, fg, pd, ps, rho)
+    last, _ = _image_difference(pd, ps, rho, rows, d, q)
+    return jnp.where(last < cost, pd, base), ps, rho
 
 
 @partial(jax.jit, static_argnames=("static",))
@@ -613,6 +651,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     dt = rows["y"].dtype
     theta = (jnp.asarray(pd0, dt), jnp.asarray(ps0, dt), jnp.asarray(np.log(alpha0), dt))
     best = (theta, jnp.asarray(np.inf, dt))
+    track = _track(theta, options.damping, rows["y"].shape)
     costs, mads, retraces, ess_log = [], [], [], []
     timings["iterations"] = 0.0
     done = 0
@@ -620,9 +659,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         n_iter = min(options.check_every, options.iterations - done)
         t0 = time.perf_counter()
         affinity = _material_affinity(theta[0], nbr, options.fill_pd_scale)  # per block: pd moves slowly
-        theta, best, (c, m) = _block(replay.data, replay.static, index, fg, rows, lobe_rows, nbr, theta, best, n_iter,
-                                     options.solver, options.steps, options.damping, options.min_snr,
-                                     options.min_fit_p, fill_target, affinity)
+        theta, best, track, (c, m) = _block(replay.data, replay.static, index, fg, rows, lobe_rows, nbr, theta, best,
+                                            track, n_iter, options.solver, options.steps, options.damping,
+                                            options.min_snr, options.min_fit_p, fill_target, affinity)
         costs += np.asarray(c).tolist()
         mads += np.asarray(m).tolist()
         done += n_iter
@@ -638,6 +677,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                                                                               jnp.exp(theta[2]))),
                                         seed=options.seed + 1 + len(retraces))
                 retraces.append({"iteration": done, "ess": ess, "seconds": time.perf_counter() - t0})
+                track = _track(track[0], options.damping, rows["y"].shape)  # costs of the new photons
                 timings["trace"] += retraces[-1]["seconds"]
 
     t0 = time.perf_counter()
@@ -649,6 +689,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     best_iteration = int(np.argmin(costs))
     fin = fin_best = _final(replay.data, replay.static, index, fg, rows, best[0])
     pd, ps, rho = (np.array(x, np.float64) for x in best[0])
+    observed_any = use.any(1)
     alpha = np.exp(rho)
     method_warnings = []
 
@@ -657,7 +698,6 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     sd_ps, sd_rho = (np.asarray(v, np.float64) for v in _lobe_sd(fin["var_ps"], fin["var_rho"], fin["chi2"], rows))
     identifiable = np.asarray(_identifiable(jnp.asarray(ps), fin["var_ps"], fin["var_rho"], fin["chi2"], rows,
                                             options.min_snr, options.min_fit_p))
-    observed_any = use.any(1)
     status = np.full(scan.n_points, MEASURED, np.int8)
     known = identifiable
     if known.any():
@@ -691,7 +731,10 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     std_pd = np.where(info > 0, np.sqrt(scale_a / np.where(info > 0, info, 1.0)), np.inf)
     std_ps = np.where(known, sd_ps, np.inf)
     std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
-    fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window)
+    # Unobserved points keep the pd the images were explained with (their start's, filled by
+    # Method I): their light reaches the observed points, and in a cavity of high albedo a
+    # window fill from the iterations' per-point pd there raised the image difference ten-fold.
+    fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window, keep_values=True)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, alpha), (std_pd, std_ps, std_alpha))
     misfit = _misfit(scan, replay, index, fg, rows, (pd, ps, alpha), dt)

@@ -852,15 +852,17 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
                   std_ln_roughness=sd[:, 4], spec_samples=n_spec, chunks=chunks)
 
 
-def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int) -> None:
+def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int, keep_values: bool = False) -> None:
     """In place: pd of points without any usable sample from the observed ones in their
     window (status at least `interpolated`; `unresolved` when filled from farther away
-    or when nothing is observed), their std infinite."""
+    or when nothing is observed), their std infinite. `keep_values`: their pd is already
+    filled (status and std only)."""
     if observed_any.all():
         return
     if observed_any.any():
         filled = window_fill(pd, observed_any, adjacency, window)
-        pd[~observed_any] = filled.values[~observed_any]
+        if not keep_values:
+            pd[~observed_any] = filled.values[~observed_any]
         near = ~observed_any & filled.window
         status[near] = np.maximum(status[near], INTERPOLATED)
         status[~observed_any & filled.diffused] = UNRESOLVED
