@@ -284,6 +284,7 @@ def main(argv=None):
         _diffuse_init,
         _fit,
         _noise_weights,
+        _pd_with_prior,
         _posterior_lobes,
         _specular_init,
         fit_rows,
@@ -326,12 +327,18 @@ def main(argv=None):
     where = types.SimpleNamespace(vertices=np.random.default_rng(1).random((args.points, 3)) * 0.1)
     observed = rows["use"].any(1)
 
+    dark = np.zeros((args.points, 3), bool)
+
     def with_prior():
         fit = fit_rows(rows, LocalOptions())
-        return _posterior_lobes(where, fit, observed, LocalOptions())[0]["params"]
+        post, meta = _posterior_lobes(where, fit, observed, dark, LocalOptions())
+        params = post["params"]
+        pd, std_pd = params[:, :3].copy(), post["sd"][:, :3].copy()
+        _pd_with_prior(where, post["labels"], observed, dark, pd, std_pd, LocalOptions(), meta)
+        return np.c_[pd, params[:, 3:]]
 
     params, wall, cpu, first = _timed(with_prior, args.repeats)
-    results.append(("jaxrefl fit_rows + shared prior (materials, joint lobes, posterior modes)", args.points,
+    results.append(("jaxrefl fit_rows + shared prior (materials, joint lobes, posterior modes, pd prior)", args.points,
                     wall, cpu, first, rel_err(np.c_[params[:, :4], np.exp(params[:, 4])][: args.subset], sub)))
 
     # scipy from jaxrefl's own start (pd and ps solved at the start roughness), and from

@@ -542,25 +542,33 @@ def _smooth_means(values, var, nbr, dist, usable, anchor, anchor_var):
 _PLANE_RIDGE = 1e-2
 
 
-def _plane_means(values, var, nbr, dist, usable, positions, at):
+def _plane_design(positions, nbr, at):
+    """`(m, k, 4)`: 1 and each neighbour's position relative to its point's, the design of
+    `_plane_means`."""
+    offset = positions[nbr] - positions[at][:, None]
+    return np.concatenate([np.ones(offset.shape[:2] + (1,)), offset], axis=2)
+
+
+def _plane_means(values, var, nbr, dist, usable, x):
     """As `_smooth_means`, without an anchor, but each point's value is the intercept of a
-    precision-weighted plane through its `usable` neighbours (positions relative to the
-    point's own): a field's gradient does not bias it, where the point lies at the edge of
-    its neighbours (a fold, a material's border) or between them. Returns `(mean,
-    var_of_mean, nearest)`, each `(m,)`."""
+    precision-weighted plane through its `usable` neighbours (`x` from `_plane_design`):
+    a field's gradient does not bias it, where the point lies at the edge of its neighbours
+    (a fold, a material's border) or between them. Returns `(mean, var_of_mean, nearest)`,
+    each `(m,)`."""
     w = np.where(usable, 1.0 / var[nbr], 0.0)  # (m, k)
-    offset = positions[nbr] - positions[at][:, None]  # (m, k, 3)
-    x = np.concatenate([np.ones(w.shape + (1,)), offset], axis=2)  # (m, k, 4)
-    a = np.einsum("mk,mki,mkj->mij", w, x, x)
-    wsum = w.sum(1)
-    spread = np.einsum("mk,mki->m", w, offset**2) / np.maximum(wsum, 1e-300)
+    xw = x * w[..., None]
+    a = np.matmul(xw.transpose(0, 2, 1), x)  # (m, 4, 4): batched products, not einsum (10x)
+    wsum = a[:, 0, 0]
+    spread = np.trace(a[:, 1:, 1:], axis1=1, axis2=2) / np.maximum(wsum, 1e-300)
     a[:, 1:, 1:] += (_PLANE_RIDGE * wsum * spread + 1e-300)[:, None, None] * np.eye(3)[None]
     some = wsum > 0
     a[~some] = np.eye(4)
-    inv = np.linalg.inv(a)
-    beta = np.einsum("mij,mj->mi", inv, np.einsum("mk,mki,mk->mi", w, x, values[nbr]))
+    # The intercept and its variance (the (0, 0) entry of the inverse) in one solve.
+    rhs = np.stack([np.matmul(xw.transpose(0, 2, 1), values[nbr][..., None])[..., 0],
+                    np.broadcast_to(np.eye(4)[0], (len(a), 4))], axis=2)
+    sol = np.linalg.solve(a, rhs)
     nearest = np.min(np.where(usable, dist, np.inf), axis=1, initial=np.inf)
-    return np.where(some, beta[:, 0], 0.0), np.where(some, inv[:, 0, 0], np.inf), nearest
+    return np.where(some, sol[:, 0, 0], 0.0), np.where(some, sol[:, 0, 1], np.inf), nearest
 
 
 def _distance_levels(nearest, shortest=0.0):
@@ -601,18 +609,18 @@ def _distance_spread(value, var, tree, own_idx, positions, sample, levels, neigh
     return np.interp(np.where(np.isfinite(nearest), nearest, centres[-1]), centres, spreads) + resolution
 
 
-def _field_search(positions, mine, at, neighbours):
+def _field_search(positions, mine, at, neighbours, plane=False):
     """The neighbour search one measured field needs (`_field_dimension`): who each point
     `at` `(m,)` rests on depends on where the measured points `mine` `(N,)` are, not on their
     values, so one search serves every dimension. Returns `(own_idx, tree, dist, nbr, usable,
-    sample)`."""
+    sample, design)`, `design` the local planes' (`_plane_design`) where `plane`, else None."""
     own_idx = np.flatnonzero(mine)
     tree = cKDTree(positions[own_idx])
     dist, nbr = _neighbours(tree, own_idx, positions, at, neighbours + 1)
     usable = _usable(at, dist, nbr, neighbours)
     sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
         own_idx[np.linspace(0, len(own_idx) - 1, _SPREAD_SAMPLE).astype(np.int64)]
-    return own_idx, tree, dist, nbr, usable, sample
+    return own_idx, tree, dist, nbr, usable, sample, (_plane_design(positions, nbr, at) if plane else None)
 
 
 def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor=0.0, anchor_var=np.inf,
@@ -629,7 +637,7 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
     (the mean of their squared misses beyond their variance): a material may be uniform in
     one part and textured in another, and a spread measured over all of it, robustly, is the
     uniform part's."""
-    own_idx, tree, dist, nbr, usable, sample = search
+    own_idx, tree, dist, nbr, usable, sample, design = search
     n = len(value)
     own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
     centre = anchor if np.isfinite(anchor_var) else float(np.median(own_values))
@@ -645,7 +653,8 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
     if local:
         # A plane follows a gradient, a mean has the smaller variance: the one whose
         # leave-one-out misses at the measured points are smaller (precision-weighted) is used.
-        plane, plane_var, _ = _plane_means(value, var_f + resolution, nbr, dist, usable, positions, at)
+        plane, plane_var, _ = _plane_means(value, var_f + resolution, nbr, dist, usable,
+                                           _plane_design(positions, nbr, at) if design is None else design)
         own = mine[at]
         weight = 1.0 / var_f[at][own]
         if np.sum(weight * (value[at][own] - plane[own]) ** 2) < np.sum(weight * (value[at][own] - mean[at][own]) ** 2):
@@ -831,7 +840,7 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
         if mine.sum() < _MIN_SPREAD_POINTS:
             continue
         at = np.flatnonzero(members)
-        search = _field_search(positions, mine, at, neighbours)
+        search = _field_search(positions, mine, at, neighbours, plane=True)
         for c in range(3):
             mu, mu_var, spread = _field_dimension(pd[:, c], var_pd[:, c], mine, at, search, positions, neighbours,
                                                   local=True)
