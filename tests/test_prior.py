@@ -19,7 +19,6 @@ from jaxrefl.methods.local import (
 )
 from jaxrefl.outputs.holdout import split_scan
 from jaxrefl.outputs.relight import direct_radiance
-from jaxrefl.methods import local as local_mod
 from jaxrefl.reflectance import brdf, prior
 from jaxrefl.result import Estimate
 
@@ -150,7 +149,7 @@ def test_diffuse_prior_shrinks_noise_without_bias(field):
     d = prior.diffuse_prior(own, sd**2, np.ones(2000, bool), np.zeros(2000, int), pos)
     assert d.available.mean() > 0.99 and np.all(np.isfinite(d.spread))
     post, std = own.copy(), sd.copy()
-    local_mod.with_prior(post, std, d.available, d.mean, d.var)
+    prior.combine_with_prior(post, std, d.available, d.mean, d.var)
     err_own, err_post = np.median(np.abs(own - true) / true), np.median(np.abs(post - true) / true)
     assert err_post < (0.4 if field == "uniform" else 0.8) * err_own
     z = np.abs(post - true) / std
@@ -171,7 +170,7 @@ def test_diffuse_prior_leaves_a_detail_its_neighbours_do_not_share():
     own = true + sd * rng.standard_normal(true.shape)
     d = prior.diffuse_prior(own, sd**2, np.ones(1500, bool), np.zeros(1500, int), pos)
     post, std = own.copy(), sd.copy()
-    local_mod.with_prior(post, std, d.available, d.mean, d.var)
+    prior.combine_with_prior(post, std, d.available, d.mean, d.var)
     assert np.all(np.abs(post[dot] - 0.2) < 5 * sd[dot])
     rest = np.ones(1500, bool)
     rest[dot] = False

@@ -437,16 +437,39 @@ def _parts(data, static, index, fg, pd, ps, rho):
     return d + dg.astype(d.dtype), q + qg.astype(q.dtype)
 
 
-def _track(theta, damping, shape):
+#: A step that raises the image difference above this multiple of the lowest one so far
+#: overshot (a cavity of high albedo swings by orders of magnitude; a converging
+#: alternation wanders within a few per cent of its best, and must be let wander).
+_OVERSHOOT = 2.0
+
+
+def _track(theta, damping, shape, dtype):
     """The line search's state at a fresh start (or after a re-trace, whose photons make
-    earlier costs incomparable): `(base theta, its (D, Q) of `shape` `(N, M, 3)`, its cost,
-    step share)`."""
-    zero = jnp.zeros(shape, theta[0].dtype)
-    return theta, (zero, zero), jnp.asarray(jnp.inf, theta[0].dtype), jnp.asarray(damping, theta[0].dtype)
+    earlier costs incomparable): `(anchor theta, its (D, Q) of `shape` `(N, M, 3)` and
+    `dtype`, its cost, step share)`, the anchor the lowest-cost estimate so far."""
+    zero = jnp.zeros(shape, dtype)
+    return theta, (zero, zero), jnp.asarray(jnp.inf, dtype), jnp.asarray(damping, dtype)
 
 
 def _where(flag, new, old):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(flag, a, b), new, old)
+
+
+def _line_search(anchor, theta, dq, cost, most):
+    """One backtracking decision (`_block`): `anchor` (`_track`) updated with the estimate
+    `theta` of image difference `cost` and interreflected light `dq`; returns it and the
+    estimate to step from, with its `dq`: `theta` unless it overshot (`_OVERSHOOT`), then
+    the anchor. The share (`anchor[3]`) halves after an overshoot and doubles, up to
+    `most`, with each new lowest image difference (growing back after every accepted step
+    would retrace the path that overshot, in a cycle)."""
+    best, best_dq, best_cost, share = anchor
+    accept = cost <= _OVERSHOOT * best_cost
+    lower = cost < best_cost
+    best, best_dq = _where(lower, theta, best), _where(lower, dq, best_dq)
+    best_cost = jnp.where(lower, cost, best_cost)
+    share = jnp.where(accept, jnp.where(lower, jnp.minimum(2.0 * share, most), share), 0.5 * share)
+    start = _where(accept, (theta, dq), (best, best_dq))
+    return (best, best_dq, best_cost, share), start
 
 
 @partial(jax.jit, static_argnames=("static", "n_iter", "solver", "steps"))
@@ -457,12 +480,12 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_
     lobe evidence (the only ones step (b) fits); `affinity` `(N, K')` (or None) the
     material affinity of the fill's candidates `nbr`.
 
-    Each iteration steps from the lowest-cost estimate so far (the base) a share of the way
-    to its steps (a) and (b): where interreflection is strong (a cavity of high albedo) the
-    steps overshoot and the plain alternation swings between states orders of magnitude
-    apart in cost. An estimate that does not lower the cost is not stepped from: the next
-    step leaves the base again with half the share (backtracking on the image difference);
-    one that does doubles it again, up to `damping`.
+    Each iteration moves a share of the way to its steps (a) and (b). Where interreflection
+    is strong (a cavity of high albedo) the steps overshoot and the plain alternation swings
+    between states orders of magnitude apart in cost: an estimate whose image difference
+    exceeds `_OVERSHOOT` times the lowest so far (the anchor) is not stepped from; the next
+    step leaves the anchor again with half the share (backtracking), and each new lowest
+    image difference doubles the share again, up to `damping`.
 
     **Returns:** `(theta, best, track, history)`, `history = (cost, mean_abs)` `(n_iter,)`
     each: the image difference of the estimate each iteration started from."""
@@ -470,17 +493,14 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_
     spec_rows = {k: rows[k][lobe_rows] for k in ("lobe", "n_b", "joint")}
 
     def body(carry, _):
-        (pd, ps, rho), (best_theta, best_cost), (base, base_dq, base_cost, share) = carry
+        (pd, ps, rho), (best_theta, best_cost), anchor = carry
         d, q = _parts(data, static, index, fg, pd, ps, rho)
         cost, mad = _image_difference(pd, ps, rho, rows, d, q)
         better = cost < best_cost
         best_theta = _where(better, (pd, ps, rho), best_theta)
         best_cost = jnp.where(better, cost, best_cost)
-        lower = cost < base_cost
-        base, (d, q) = _where(lower, (pd, ps, rho), base), _where(lower, (d, q), base_dq)
-        base_cost = jnp.where(lower, cost, base_cost)
-        share = jnp.where(lower, jnp.minimum(2.0 * share, damping), 0.5 * share)
-        pd, ps, rho = base
+        anchor, ((pd, ps, rho), (d, q)) = _line_search(anchor, (pd, ps, rho), (d, q), cost, damping)
+        share = anchor[3]
         pd_new, _ = _step_a(pd, ps, rho, rows, d, q)
         pd = pd + share * (pd_new - pd)
         # Step (b) only where a lobe can be measured at all (the rows `lobe_rows`).
@@ -502,7 +522,7 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_
                                       sd_ps, sd_rho, nbr, fill_target, steps=4, warm=True, affinity=affinity)
         ps = ps + share * (ps_new - ps)
         rho = rho + share * (rho_new - rho)
-        return ((pd, ps, rho), (best_theta, best_cost), (base, (d, q), base_cost, share)), (cost, mad)
+        return ((pd, ps, rho), (best_theta, best_cost), anchor), (cost, mad)
 
     (theta, best, track), hist = jax.lax.scan(body, (theta, best, track), None, length=n_iter)
     return theta, best, track, hist
@@ -517,22 +537,17 @@ def _polish(data, static, index, fg, rows, theta, n_iter):
     _, ps, rho = theta
 
     def body(carry, _):
-        pd, (base, base_dq, base_cost, share) = carry
+        pd, anchor = carry
         d, q = _parts(data, static, index, fg, pd, ps, rho)
         cost, _ = _image_difference(pd, ps, rho, rows, d, q)
-        lower = cost < base_cost
-        base, (d, q) = _where(lower, pd, base), _where(lower, (d, q), base_dq)
-        base_cost = jnp.where(lower, cost, base_cost)
-        share = jnp.where(lower, jnp.minimum(2.0 * share, 1.0), 0.5 * share)
-        pd = base + share * (_step_a(base, ps, rho, rows, d, q)[0] - base)
-        return (pd, (base, (d, q), base_cost, share)), None
+        anchor, (pd_from, (d, q)) = _line_search(anchor, pd, (d, q), cost, 1.0)
+        return (pd_from + anchor[3] * (_step_a(pd_from, ps, rho, rows, d, q)[0] - pd_from), anchor), None
 
-    _, dq, cost, share = _track(theta, 1.0, rows["y"].shape)
-    (pd, (base, dq, cost, _)), _ = jax.lax.scan(body, (theta[0], (theta[0], dq, cost, share)), None,
-                                                length=n_iter)
+    start = _track(theta[0], 1.0, rows["y"].shape, rows["y"].dtype)
+    (pd, (best, _, cost, _)), _ = jax.lax.scan(body, (theta[0], start), None, length=n_iter)
     d, q = _parts(data, static, index, fg, pd, ps, rho)
     last, _ = _image_difference(pd, ps, rho, rows, d, q)
-    return jnp.where(last < cost, pd, base), ps, rho
+    return jnp.where(last < cost, pd, best), ps, rho
 
 
 @partial(jax.jit, static_argnames=("static",))
@@ -651,7 +666,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     dt = rows["y"].dtype
     theta = (jnp.asarray(pd0, dt), jnp.asarray(ps0, dt), jnp.asarray(np.log(alpha0), dt))
     best = (theta, jnp.asarray(np.inf, dt))
-    track = _track(theta, options.damping, rows["y"].shape)
+    track = _track(theta, options.damping, rows["y"].shape, dt)
     costs, mads, retraces, ess_log = [], [], [], []
     timings["iterations"] = 0.0
     done = 0
@@ -677,7 +692,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                                                                               jnp.exp(theta[2]))),
                                         seed=options.seed + 1 + len(retraces))
                 retraces.append({"iteration": done, "ess": ess, "seconds": time.perf_counter() - t0})
-                track = _track(track[0], options.damping, rows["y"].shape)  # costs of the new photons
+                track = _track(track[0], options.damping, rows["y"].shape, dt)  # costs of the new photons
                 timings["trace"] += retraces[-1]["seconds"]
 
     t0 = time.perf_counter()

@@ -871,16 +871,6 @@ def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int,
     std_pd[~observed_any] = np.inf
 
 
-def with_prior(value, std, where, mean, var) -> None:
-    """In place on `value`, `std` `(N, C)` at the rows `where` `(N,)`: the Gaussian posterior
-    of an estimate `value +- std` under the prior `mean`, `var` `(N, C)` (an infinite std:
-    the prior)."""
-    v_own = np.maximum(std[where] ** 2, 1e-300)
-    precision = 1.0 / v_own + 1.0 / var[where]
-    value[where] = (value[where] / v_own + mean[where] / var[where]) / precision
-    std[where] = np.sqrt(1.0 / precision)
-
-
 def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) -> None:
     """In place: each observed point's pd (given its lobe, as the stages before left it) with
     the empirical-Bayes prior of its material-mates' pd field (`prior.diffuse_prior`, built
@@ -889,7 +879,7 @@ def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) 
     std_pd[dark] = np.inf
     diffuse = prior_mod.diffuse_prior(pd, std_pd**2, observed_any, labels, scan.vertices,
                                       neighbours=options.prior_neighbours)
-    with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
+    prior_mod.combine_with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
     np.clip(pd, 0.0, 1.0, out=pd)  # the fit's bounds
     for m, entry in enumerate(meta["material_lobes"]):
         entry["spread_pd"] = [float(v) for v in diffuse.spread[m]]

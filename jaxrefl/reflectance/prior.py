@@ -50,7 +50,7 @@ from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
-           "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "local_prior", "spread_by_evidence",
+           "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior", "spread_by_evidence",
            "status_from_posterior", "prior_conflict"]
 
 _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
@@ -854,6 +854,16 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
     available &= ~conflict
     return DiffusePrior(np.where(available[:, None], mean, 0.0), np.where(available[:, None], var, np.inf),
                         available, conflict, spreads)
+
+
+def combine_with_prior(value, std, where, mean, var) -> None:
+    """In place on `value`, `std` `(N, C)` at the rows `where` `(N,)`: the Gaussian posterior
+    of an estimate `value +- std` under the prior `mean`, `var` `(N, C)` (an infinite std:
+    the prior)."""
+    v_own = np.maximum(std[where] ** 2, 1e-300)
+    precision = 1.0 / v_own + 1.0 / var[where]
+    value[where] = (value[where] / v_own + mean[where] / var[where]) / precision
+    std[where] = np.sqrt(1.0 / precision)
 
 
 def status_from_posterior(own, var_own_ps, var_own_rho, prior: LobePrior):
