@@ -1,5 +1,7 @@
 """The shared reflectance prior (jaxrefl.reflectance.prior) through Method I, on rig-zoo scenes."""
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -128,6 +130,8 @@ def test_channels_quantised_to_zero_take_the_prior():
     assert est.meta["materials"] == 1
     assert np.all(_rel(est.pd, scan.true_pd)[dark] < 0.05)
     assert np.all(np.isfinite(est.std_pd[dark])) and np.all(est.std_pd[dark] < 0.05)
+    assert all(len(m["spread_pd"]) == 3 for m in est.meta["material_lobes"])
+    json.dumps(est.meta, allow_nan=False)  # strict JSON, spreads included
 
 
 def _sphere(n, seed):

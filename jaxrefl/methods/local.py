@@ -882,7 +882,7 @@ def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) 
     prior_mod.combine_with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
     np.clip(pd, 0.0, 1.0, out=pd)  # the fit's bounds
     for m, entry in enumerate(meta["material_lobes"]):
-        entry["spread_pd"] = [float(v) for v in diffuse.spread[m]]
+        entry["spread_pd"] = [float(v) if np.isfinite(v) else None for v in diffuse.spread[m]]  # strict JSON
     meta["points_with_diffuse_prior"] = int((observed_any & diffuse.available).sum())
     meta["points_in_conflict_with_diffuse_prior"] = int(diffuse.conflict.sum())
 

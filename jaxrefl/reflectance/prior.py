@@ -50,8 +50,8 @@ from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
-           "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior", "spread_by_evidence",
-           "status_from_posterior", "prior_conflict"]
+           "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
+           "spread_by_evidence", "status_from_posterior", "prior_conflict"]
 
 _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
 #: Fewest own lobes from which a material's spread is estimated (a variance from fewer
