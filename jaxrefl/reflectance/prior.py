@@ -633,10 +633,9 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
     it at that distance (`_distance_spread`), never below the resolution of a variance from
     `n` points, `median own variance * sqrt(2 / n)`. With `local` the mean may be a local
     plane's (`_plane_means`, where that predicts the measured points better) and the spread
-    is never below the one its own neighbours show
-    (the mean of their squared misses beyond their variance): a material may be uniform in
-    one part and textured in another, and a spread measured over all of it, robustly, is the
-    uniform part's."""
+    is never below the one its own neighbours show (the mean of their squared misses beyond
+    their variance): a material may be uniform in one part and textured in another, and a
+    spread measured over all of it, robustly, is the uniform part's."""
     own_idx, tree, dist, nbr, usable, sample, design = search
     n = len(value)
     own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
@@ -667,10 +666,9 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
                                   _distance_levels(nearest[at], shortest), neighbours, centre, anchor_var, total,
                                   nearest, resolution)
     if local:
-        excess = np.where(mine, (value - mean) ** 2 - var_f - np.where(mine, mean_var, 0.0), 0.0)
-        usable = search[4]
+        excess = np.where(mine, (value - mean) ** 2 - var_f - mean_var, 0.0)
         count = usable.sum(1)
-        seen = np.divide(np.sum(np.where(usable, excess[search[3]], 0.0), 1), count, out=np.zeros(len(at)),
+        seen = np.divide(np.sum(np.where(usable, excess[nbr], 0.0), 1), count, out=np.zeros(len(at)),
                          where=count > 0)
         spread[at] = np.maximum(spread[at], seen)
     return mean, mean_var, spread
