@@ -748,7 +748,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
     # Unobserved points keep the pd the images were explained with (their start's, filled by
     # Method I): their light reaches the observed points, and in a cavity of high albedo a
-    # window fill from the iterations' per-point pd there raised the image difference ten-fold.
+    # window fill from the iterations' per-point pd would change the images it returns.
     fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window, keep_values=True)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, alpha), (std_pd, std_ps, std_alpha))

@@ -48,6 +48,7 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import brentq
 from scipy.spatial import cKDTree
+from scipy.stats import chi2 as chi2_dist
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
@@ -824,8 +825,6 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
     **Arguments:** `pd`, `var_pd` `(N, 3)` each point's own fit and its variance; `known`
     `(N,)` bool the points with an own fit; `labels` `(N,)` materials; `positions` `(N, 3)`.
     """
-    from scipy.stats import chi2
-
     pd, var_pd = np.asarray(pd, np.float64), np.asarray(var_pd, np.float64)
     n = len(pd)
     k = int(labels.max()) + 1 if n else 0
@@ -847,7 +846,7 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
     available = np.all(np.isfinite(var), axis=1)
     tested = available & known
     chi = np.sum((pd - mean) ** 2 / (np.where(tested[:, None], var_pd, 1.0) + var), axis=1)
-    threshold = chi2.isf(_CONFLICT_ALPHA / max(int(tested.sum()), 1), 3)
+    threshold = chi2_dist.isf(_CONFLICT_ALPHA / max(int(tested.sum()), 1), 3)
     conflict = tested & (chi > threshold)
     available &= ~conflict
     return DiffusePrior(np.where(available[:, None], mean, 0.0), np.where(available[:, None], var, np.inf),
