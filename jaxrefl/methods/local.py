@@ -1087,9 +1087,12 @@ def _fill_from_gates(scan, rows, fit, observed_any, adjacency, options, q, value
 
 
 def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None,
-                   rows: dict | None = None) -> Estimate:
+                   rows: dict | None = None, quantisation: float | None = None) -> Estimate:
     """Method I on a scan with radiance. See the module docstring. `rows`: the scan's
-    `prepare_rows(scan, options.thresholds, caster)` when the caller has it already.
+    `prepare_rows(scan, options.thresholds, caster)` when the caller has it already;
+    `quantisation`: the sensor's quantisation step where `scan.radiance` is not the sensor's
+    values (Method II passes what is left after the interreflected light, off the sensor's
+    lattice); None: detected from `scan.radiance` (`quantisation_step`).
 
     **Returns:** `Estimate` (no NaN: unresolved values are filled, their
     standard deviations infinite).
@@ -1098,7 +1101,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     timings = {}
     t0 = time.perf_counter()
     rows = rows if rows is not None else prepare_rows(scan, options.thresholds, caster)
-    q = quantisation_step(scan.radiance, rows["use"])
+    q = quantisation_step(scan.radiance, rows["use"]) if quantisation is None else float(quantisation)
     timings["classify"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

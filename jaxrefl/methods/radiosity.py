@@ -31,8 +31,11 @@ configurations its observations use.
 
 **Specular** (`estimate_radiosity`): the interreflected diffuse radiance
 `pd I / pi` is subtracted from every observation and Method I (`local`) fits
-ps and roughness on the rest; pd is the inverse-radiosity value wherever the
-point has a `T_diff` sample.
+ps, roughness and pd jointly on the rest (with the shared reflectance prior, and
+the sensor's quantisation step of the original radiance). That pd, from every sample,
+is the estimate; the inverse radiosity's (from the `T_diff` samples) only makes the
+interreflection. `paper=True` keeps the inverse-radiosity pd wherever the point has an
+observation, as the paper does.
 """
 
 from __future__ import annotations
@@ -56,7 +59,7 @@ from ..reflectance.classify import T_DIFF, Thresholds
 from ..reflectance.fill import vertex_adjacency, window_fill
 from ..result import Estimate
 from ..scan import checks
-from .local import LocalOptions, estimate_local, prepare_rows
+from .local import LocalOptions, estimate_local, prepare_rows, quantisation_step
 
 __all__ = ["RadiosityOptions", "LightConfigs", "light_configs", "direct_irradiance", "solve_radiosity",
            "first_bounce_correction", "inverse_radiosity", "restrict_configs", "estimate_radiosity",
@@ -420,8 +423,8 @@ class RadiosityOptions:
 
 def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
                        caster: RayCaster | None = None, points=None) -> Estimate:
-    """Method II on a scan with radiance: pd by inverse radiosity, ps and roughness by
-    Method I on the observations with the interreflected diffuse part removed.
+    """Method II on a scan with radiance: the interreflected diffuse light by inverse
+    radiosity, then pd, ps and roughness by Method I on the observations less that light.
 
     `points` `(N,)` bool (default all): estimate only these points (`--method auto`'s
     regions). The other points' albedo enters the radiosity as a fixed source (Method
@@ -462,6 +465,8 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
 
     t0 = time.perf_counter()
     use, y, e = rows["use"], rows["y"], rows["e"]
+    # The residuals below are off the sensor's lattice: Method I is told its step.
+    q_step = quantisation_step(scan.radiance, use)
     has_diffuse = (use & (rows["classes"] == T_DIFF)).any(1)
     # Samples for pd: the T_diff ones where a point has any, else all of its samples with the
     # current specular estimate taken off (it starts at zero and is refined by the outer loop).
@@ -489,7 +494,7 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
         reflected = inv.pd[:, None, :] * inv.interreflected / np.pi
         residual = np.where(use[..., None], np.maximum(scan.radiance - reflected, 0.0), scan.radiance)
         est = estimate_local(dataclasses.replace(scan, radiance=residual.astype(scan.radiance.dtype)),
-                             local_options, caster)
+                             local_options, caster, quantisation=q_step)
         timings["local"] += time.perf_counter() - t0
         # T_diff samples are free of specular light by construction (theta_r > theta_th1), so
         # only points without one take the specular estimate off their samples.
@@ -500,7 +505,12 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
         specular, pd0 = new, np.where(region[:, None], inv.pd, est.pd)
 
     pd = est.pd.copy()
-    pd[seen & region] = inv.pd[seen & region]
+    if options.paper:
+        pd[seen & region] = inv.pd[seen & region]
+    # Otherwise pd is the last Method I fit's: on the observations less the interreflected
+    # diffuse light, jointly with the lobe, over every sample (a broad lobe leaves light in
+    # T_diff samples too), with material-mates' pd as a prior; the inverse radiosity's own pd
+    # (T_diff samples only) gave that interreflection and agrees with it up to noise.
     np.nan_to_num(pd, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     np.clip(pd, 0.0, 1.0, out=pd)  # already so (bounded fits); kept for every path
     meta = dict(est.meta)
