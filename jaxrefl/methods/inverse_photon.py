@@ -25,9 +25,11 @@ Outer iteration `k` (all points at once, `jax.lax.scan` inside one `jit`):
 0. photon map `(D, Q)` at the current estimate; its image difference (Eq. 14,
    noise-weighted: `sum w^2 (y - y_hat)^2` over all used samples) is recorded,
    and the estimate with the smallest one is kept (§5.2);
-1. step (a): `pd` per channel by least squares over the point's `T_diff` samples
-   (all its samples when it has none) with `D` added to the irradiance and the
-   current specular part taken off (closed form, clipped to `[0, 1]`);
+1. step (a): `pd` per channel by least squares over all the point's samples with
+   `D` added to the irradiance and the current specular part taken off (closed form,
+   clipped to `[0, 1]`). The paper (`local.paper`) uses its `T_diff` samples only
+   (all when it has none), which a broad lobe still lights and which are few and
+   dark (measurements: `benchmarks/RESULTS_rigs_gi.md`);
 2. step (b), on the points with lobe evidence only (a `T_spec` sample and two
    step (b) samples): `ps`, `alpha` from the `T_spec` and `T_none` samples with
    `pd` fixed and `Q` held at the current `alpha`: `ps` projected out (least
@@ -114,6 +116,8 @@ from .local import (
     UNRESOLVED,
     LocalOptions,
     _noise_weights,
+    _pd_with_prior,
+    dark_channels,
     estimate_local,
     fill_unobserved_pd,
     finite_outputs,
@@ -319,8 +323,8 @@ def _step_b_simplex(ps0, rho0, args, steps):
 def _spec_information(ps, rho, args, pd, d, joint):
     """Gauss-Newton covariance diagonal `(var ps, var rho)` and chi^2 of step (b) per row.
 
-    Where `joint` (the point has no `T_diff` sample, so pd is fitted from the same
-    samples) a grey scale of pd is a third parameter: a broad lobe and pd explain such
+    Where `joint` (the point has no `T_diff` sample, so its pd rests on the same samples
+    as its lobe) a grey scale of pd is a third parameter: a broad lobe and pd explain such
     samples almost equally well, and the variances must say so."""
 
     def one(ps, rho, s, e, ci, co, th, q, w2, b, pd, d, joint):
@@ -590,10 +594,10 @@ def _start(est: Estimate):
     return pd, ps, np.clip(alpha, *ALPHA_RANGE)
 
 
-def _fit_rows(scan, rows_np):
+def _fit_rows(scan, rows_np, paper=False):
     """Device arrays of the observations for the fits, and the quantisation step: those of
-    `prepare_rows` plus `w2` noise weights squared, `a` step (a)'s samples (`T_diff`,
-    all where a point has none), `b` step (b)'s (`T_spec`, `T_none`), `lobe` lobe
+    `prepare_rows` plus `w2` noise weights squared, `a` step (a)'s samples (all; with
+    `paper` the `T_diff` ones, all where a point has none), `b` step (b)'s (`T_spec`, `T_none`), `lobe` lobe
     evidence (a `T_spec` sample and two step (b) samples: only these points move their
     lobe; the others keep the start's until the final fill), `joint` (no `T_diff`
     sample), `n_b`."""
@@ -604,7 +608,8 @@ def _fit_rows(scan, rows_np):
     w = np.asarray(_noise_weights(jnp.asarray(rows_np["y"]), jnp.asarray(use), q_step / np.sqrt(12.0)))
     rows = {k: jnp.asarray(rows_np[k]) for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
     lobe = ((use & (classes == T_SPEC)).sum(1) >= 1) & (b_mask.sum(1) >= 2)
-    rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(np.where(has_diff[:, None], use & (classes == T_DIFF), use)),
+    a = np.where(has_diff[:, None], use & (classes == T_DIFF), use) if paper else use
+    rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(a),
                 b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe), joint=jnp.asarray(~has_diff),
                 n_b=jnp.asarray(b_mask.sum(1)))
     return rows, q_step
@@ -633,7 +638,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     timings["local_start"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    rows, q_step = _fit_rows(scan, rows_np)
+    rows, q_step = _fit_rows(scan, rows_np, options.local.paper)
     use = rows_np["use"]
     joint, lobe = (np.asarray(rows[k]) for k in ("joint", "lobe"))
     lobe_rows = jnp.asarray(np.flatnonzero(lobe), jnp.int32)
@@ -746,6 +751,12 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     std_pd = np.where(info > 0, np.sqrt(scale_a / np.where(info > 0, info, 1.0)), np.inf)
     std_ps = np.where(known, sd_ps, np.inf)
     std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
+    # pd, as Method I's, shares evidence with its material-mates (the start's materials).
+    prior_meta = {}
+    if init.material is not None:
+        prior_meta["material_lobes"] = [dict(m) for m in init.meta["material_lobes"]]
+        _pd_with_prior(scan, init.material, observed_any, dark_channels(rows_np), pd, std_pd, options.local,
+                       prior_meta)
     # Unobserved points keep the pd the images were explained with (their start's, filled by
     # Method I): their light reaches the observed points, and in a cavity of high albedo a
     # window fill from the iterations' per-point pd would change the images it returns.
@@ -767,6 +778,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "points_with_observations": int(observed_any.sum()),
         "points_with_diffuse_only_sample": int((~joint).sum()),
         "start": {"coverage": float(np.mean(init.status == MEASURED))},
+        **{k: v for k, v in prior_meta.items() if k != "material_lobes"},
         "observation_checks": scan.meta["observation_checks"],
     }
     if misfit is not None:

@@ -887,6 +887,13 @@ def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) 
     meta["points_in_conflict_with_diffuse_prior"] = int(diffuse.conflict.sum())
 
 
+def dark_channels(rows) -> np.ndarray:
+    """`(N, 3)` bool: channels of observed points whose every sample quantised to 0 (`rows`
+    from `prepare_rows`). They only bound pd from above: not a pd of 0."""
+    use = np.asarray(rows["use"])
+    return use.any(1)[:, None] & ~np.any(use[..., None] & (np.asarray(rows["y"]) > 0), axis=1)
+
+
 def finite_outputs(values, stds) -> None:
     """In place: nothing non-finite leaves an estimator. Values never NaN (0), std may
     be inf (unknown), never NaN."""
@@ -1111,8 +1118,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     t0 = time.perf_counter()
     identifiable = fit["identifiable"]
     observed_any = rows["use"].any(1)
-    # Channels whose every sample quantised to 0 only bound pd from above: not a pd of 0.
-    dark = observed_any[:, None] & ~np.any(rows["use"][..., None] & (np.asarray(rows["y"]) > 0), axis=1)
+    dark = dark_channels(rows)
     pd, ps, rough = fit["pd"].copy(), fit["ps"].copy(), fit["roughness"].copy()
     std_pd, std_ps, std_rough = fit["std_pd"].copy(), fit["std_ps"].copy(), fit["std_roughness"].copy()
     status = np.full(scan.n_points, MEASURED, np.int8)
