@@ -72,6 +72,30 @@ def test_convex_object_matches_truth_and_method_one(convex, solver, request):
     assert misfit["truth"] > 0 and misfit["estimate"] > 0 and misfit["ratio"] == misfit["estimate"] / misfit["truth"]
 
 
+def test_step_a_samples_follow_whose_lobe_it_is():
+    """Step (a) fits pd over every sample where the point's own lobe is fitted from those
+    samples (lobe evidence), over its `T_diff` samples where its lobe is borrowed from other
+    points (a wrong borrowed lobe would leak into pd), over all where it has no `T_diff`
+    sample; the paper's rule: the `T_diff` samples wherever there are any."""
+    from data_synth.zoo import make_cell
+    from jaxrefl.geometry.raycast import RayCaster
+    from jaxrefl.methods.inverse_photon import _fit_rows
+    from jaxrefl.methods.local import prepare_rows
+    from jaxrefl.reflectance.classify import T_DIFF
+
+    scan, _ = make_cell("photometric_piecewise", n_points=642)  # all three kinds of point
+    rows_np = prepare_rows(scan, LocalOptions(model="ward").thresholds, RayCaster(scan.vertices, scan.faces))
+    use, diffuse = rows_np["use"], rows_np["use"] & (rows_np["classes"] == T_DIFF)
+    has_diff = diffuse.any(1)
+    rows, _ = _fit_rows(scan, rows_np)
+    a, lobe = np.asarray(rows["a"]), np.asarray(rows["lobe"])
+    assert (lobe & has_diff).any() and (~lobe & has_diff).any() and (~has_diff & use.any(1)).any()
+    assert np.array_equal(a[lobe | ~has_diff], use[lobe | ~has_diff])
+    assert np.array_equal(a[~lobe & has_diff], diffuse[~lobe & has_diff])
+    paper = np.asarray(_fit_rows(scan, rows_np, paper=True)[0]["a"])
+    assert np.array_equal(paper[has_diff], diffuse[has_diff]) and np.array_equal(paper[~has_diff], use[~has_diff])
+
+
 def test_estimate_explains_the_images_as_well_as_the_truth(convex_photon):
     """Convergence checked, not assumed: through the same forward model (direct light, photon
     replay) the image difference at Method III's estimate is within 10 % of that at the truth

@@ -25,11 +25,13 @@ Outer iteration `k` (all points at once, `jax.lax.scan` inside one `jit`):
 0. photon map `(D, Q)` at the current estimate; its image difference (Eq. 14,
    noise-weighted: `sum w^2 (y - y_hat)^2` over all used samples) is recorded,
    and the estimate with the smallest one is kept (§5.2);
-1. step (a): `pd` per channel by least squares over all the point's samples with
-   `D` added to the irradiance and the current specular part taken off (closed form,
-   clipped to `[0, 1]`). The paper (`local.paper`) uses its `T_diff` samples only
-   (all when it has none), which a broad lobe still lights and which are few and
-   dark (measurements: `benchmarks/RESULTS_rigs_gi.md`);
+1. step (a): `pd` per channel by least squares with `D` added to the irradiance and
+   the current specular part taken off (closed form, clipped to `[0, 1]`), over all
+   the point's samples where its own lobe is fitted from them (lobe evidence, below),
+   else over its `T_diff` samples (all when it has none): a lobe filled from other
+   points may be wrong, and would leak into pd. The paper (`local.paper`) uses the
+   `T_diff` samples wherever there are any, which are few and dark (measurements:
+   `benchmarks/RESULTS_rigs_gi.md`);
 2. step (b), on the points with lobe evidence only (a `T_spec` sample and two
    step (b) samples): `ps`, `alpha` from the `T_spec` and `T_none` samples with
    `pd` fixed and `Q` held at the current `alpha`: `ps` projected out (least
@@ -596,8 +598,9 @@ def _start(est: Estimate):
 
 def _fit_rows(scan, rows_np, paper=False):
     """Device arrays of the observations for the fits, and the quantisation step: those of
-    `prepare_rows` plus `w2` noise weights squared, `a` step (a)'s samples (all; with
-    `paper` the `T_diff` ones, all where a point has none), `b` step (b)'s (`T_spec`, `T_none`), `lobe` lobe
+    `prepare_rows` plus `w2` noise weights squared, `a` step (a)'s samples (all where the
+    point has lobe evidence or no `T_diff` sample, else its `T_diff` ones; with `paper` the
+    `T_diff` ones wherever it has any), `b` step (b)'s (`T_spec`, `T_none`), `lobe` lobe
     evidence (a `T_spec` sample and two step (b) samples: only these points move their
     lobe; the others keep the start's until the final fill), `joint` (no `T_diff`
     sample), `n_b`."""
@@ -608,7 +611,11 @@ def _fit_rows(scan, rows_np, paper=False):
     w = np.asarray(_noise_weights(jnp.asarray(rows_np["y"]), jnp.asarray(use), q_step / np.sqrt(12.0)))
     rows = {k: jnp.asarray(rows_np[k]) for k in ("y", "e", "cos_i", "cos_o", "theta_r", "use")}
     lobe = ((use & (classes == T_SPEC)).sum(1) >= 1) & (b_mask.sum(1) >= 2)
-    a = np.where(has_diff[:, None], use & (classes == T_DIFF), use) if paper else use
+    # pd from every sample where the point's own lobe is fitted from them (the lobe is taken
+    # off; broad lobes light T_diff samples too); from the T_diff samples where the lobe is
+    # borrowed (filled), so that a wrong borrowed lobe cannot leak into pd; the paper: T_diff.
+    diffuse_only = has_diff if paper else has_diff & ~lobe
+    a = np.where(diffuse_only[:, None], use & (classes == T_DIFF), use)
     rows.update(w2=jnp.asarray(w**2), a=jnp.asarray(a),
                 b=jnp.asarray(b_mask), lobe=jnp.asarray(lobe), joint=jnp.asarray(~has_diff),
                 n_b=jnp.asarray(b_mask.sum(1)))
