@@ -386,3 +386,14 @@ def test_method_two_on_a_quantised_convex_scan_agrees_with_method_one():
         assert err_two <= 1.2 * err_one + 2e-3, (name, err_one, err_two)
     assert np.mean(two.roughness[seen] > 1.0) < 0.01  # no lobe ran to the bound (pi / 2)
     assert np.isfinite(two.pd).all() and np.isfinite(two.ps).all()
+
+
+def test_method_one_rejects_a_bad_quantisation_step():
+    """The sensor's step Method II hands to Method I: a negative or non-finite one is an
+    error naming the argument, before any work."""
+    from data_synth import zoo
+
+    scan, _ = zoo.make_cell("ring_piecewise", n_points=162)
+    for bad in (-0.01, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="quantisation"):
+            estimate_local(scan, quantisation=bad)

@@ -761,7 +761,6 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     # pd, as Method I's, shares evidence with its material-mates (the start's materials).
     prior_meta = {}
     if init.material is not None:
-        prior_meta["material_lobes"] = [dict(m) for m in init.meta["material_lobes"]]
         _pd_with_prior(scan, init.material, observed_any, dark_channels(rows_np), pd, std_pd, options.local,
                        prior_meta)
     # Unobserved points keep the pd the images were explained with (their start's, filled by
@@ -785,7 +784,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "points_with_observations": int(observed_any.sum()),
         "points_with_diffuse_only_sample": int((~joint).sum()),
         "start": {"coverage": float(np.mean(init.status == MEASURED))},
-        **{k: v for k, v in prior_meta.items() if k != "material_lobes"},
+        **prior_meta,
         "observation_checks": scan.meta["observation_checks"],
     }
     if misfit is not None:

@@ -875,13 +875,14 @@ def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) 
     """In place: each observed point's pd (given its lobe, as the stages before left it) with
     the empirical-Bayes prior of its material-mates' pd field (`prior.diffuse_prior`, built
     from those same estimates); the lobes stay as they are. A `dark` `(N, 3)` channel (every
-    sample quantised to 0) has no estimate of its own: it takes the prior."""
+    sample quantised to 0) has no estimate of its own: it takes the prior. `meta` gets the
+    counts, and each of its `material_lobes` entries (where it has them) its pd spread."""
     std_pd[dark] = np.inf
     diffuse = prior_mod.diffuse_prior(pd, std_pd**2, observed_any, labels, scan.vertices,
                                       neighbours=options.prior_neighbours)
     prior_mod.combine_with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
     np.clip(pd, 0.0, 1.0, out=pd)  # the fit's bounds
-    for m, entry in enumerate(meta["material_lobes"]):
+    for m, entry in enumerate(meta.get("material_lobes", [])):
         entry["spread_pd"] = [float(v) if np.isfinite(v) else None for v in diffuse.spread[m]]  # strict JSON
     meta["points_with_diffuse_prior"] = int((observed_any & diffuse.available).sum())
     meta["points_in_conflict_with_diffuse_prior"] = int(diffuse.conflict.sum())
@@ -1105,6 +1106,8 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     standard deviations infinite).
     """
     scan, top = checks.method_input(scan)  # top: called by the user, not by another method
+    if quantisation is not None and not (np.isfinite(quantisation) and quantisation >= 0):
+        raise ValueError(f"quantisation: the sensor's step must be finite and >= 0, got {quantisation!r}")
     timings = {}
     t0 = time.perf_counter()
     rows = rows if rows is not None else prepare_rows(scan, options.thresholds, caster)
