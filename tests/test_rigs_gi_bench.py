@@ -122,7 +122,7 @@ def test_run_cell_plumbing(tmp_path, monkeypatch):
     misfit = {"misfit": {"estimate": 1.0, "truth": 1.0, "ratio": 1.0}, "seconds": {"trace": 0.1}}
     monkeypatch.setattr(rigs_gi, "_methods", lambda photon: {
         "I": fake(1.1), "II": broken, "III": fake(1.01, misfit), "auto": fake(1.01, misfit),
-        rigs_gi.DEFAULTS: fake(1.0, misfit)})
+        rigs_gi.DEFAULTS: fake(1.0, misfit), rigs_gi.PRIOR: fake(1.02, misfit)})
     logs = []
     rec = rigs_gi.run_cell("gi_bumpy_ring", n_points=162, methods=rigs_gi.METHODS + (rigs_gi.DEFAULTS,),
                            log=logs.append)
@@ -131,7 +131,8 @@ def test_run_cell_plumbing(tmp_path, monkeypatch):
     assert math.isclose(m["I"]["errors"]["roughness"]["median"], 1.0)
     assert "boom" in m["II"]["error"] and m["III"]["misfit"]["ratio"] == 1.0
     assert "seconds_warm" in m["III"] and "seconds_warm" not in m[rigs_gi.DEFAULTS]
-    assert m["III"]["status"] == {"measured": 162} and len(logs) == 6
+    assert "seconds_warm" not in m[rigs_gi.PRIOR] and math.isclose(m[rigs_gi.PRIOR]["errors"]["pd"]["median"], 0.02)
+    assert m["III"]["status"] == {"measured": 162} and len(logs) == 7
     checks = {c["check"]: c for c in rigs_gi.target_checks(rec)}
     assert checks["auto: median pd error <= 1.1x the best single method's"]["context"] == "best III"
 

@@ -87,6 +87,20 @@ since each point's pd depends through the interreflected light on its neighbours
 lobes and pd (refitting only the filled points, once, left pd beside a fold further
 off: `benchmarks/RESULTS_notes.md`).
 
+**Shared prior on the lobes** (`lobe_prior`, off by default; `_lobe_posterior`): a second
+candidate for the final lobes. At the kept iterate's interreflected light every point's
+lobe is fitted jointly with its pd over all its samples (pd profiled out, `_joint_row`:
+the alternation of steps (a) and (b) trades pd against the lobe slowly along their common
+valley, and stalls); materials are clustered from those fits (`prior.fit_materials`), each
+material's lobe is fitted to all its points' samples at once (`prior.material_lobes`), and
+each point takes its posterior mode under the empirical-Bayes prior (`prior.lobe_prior`;
+`measured` or `pooled` by `prior.status_from_posterior`, its own fit where its samples
+reject the prior). pd is taken to its fixed point under both candidates and the lobes with
+the lower image difference are kept (`meta['lobe_stage']`). On a uniform glossy fold it
+cuts the pd error by more than half; where per-point clusters go wrong (a two-glaze cup)
+its lower image difference comes with worse lobes, which is why it is not the default
+(measurements: `benchmarks/RESULTS_rigs_gi.md`).
+
 Per-point lights (a rotating scanner, `light_pos` `(N, M, 3)`) are binned into
 light configurations as Method II (`radiosity.light_configs`, `light_bin`);
 each configuration gets `photons * M / C` photons.
@@ -106,6 +120,7 @@ import optimistix as optx
 
 from ..geometry.raycast import RayCaster
 from ..reflectance import brdf
+from ..reflectance import prior as prior_mod
 from ..reflectance.classify import T_DIFF, T_SPEC, Thresholds
 from ..reflectance.fill import nearest_candidates, precise_huber, vertex_adjacency, window_reach
 from ..result import Estimate
@@ -115,8 +130,11 @@ from .lm import gauss_newton_1d
 from .local import (
     INTERPOLATED,
     MEASURED,
+    POOLED,
     UNRESOLVED,
     LocalOptions,
+    _features,
+    _noise_scale,
     _noise_weights,
     _pd_with_prior,
     dark_channels,
@@ -155,7 +173,9 @@ class PhotonOptions:
     until the scan's total fits `gather_budget`; `min_snr`, `min_fit_p` the
     identifiability test; `fill_sd`, `fill_neighbours`, `fill_pd_scale` the lobe fill;
     `polish` steps (a) at the final lobes; `window` the ring that decides
-    `interpolated` against `unresolved`; `local` Method I options of the start (Ward)."""
+    `interpolated` against `unresolved`; `lobe_prior` the shared prior's lobes as a second
+    candidate for the final lobes (`_lobe_posterior`; off by default: measurements in
+    `benchmarks/RESULTS_rigs_gi.md`); `local` Method I options of the start (Ward)."""
 
     photons: int = 1_000_000
     iterations: int = 50
@@ -176,6 +196,7 @@ class PhotonOptions:
     fill_pd_scale: float = 0.2
     polish: int = 10
     window: int = 5
+    lobe_prior: bool = False
     local: LocalOptions = field(default_factory=lambda: LocalOptions(model="ward"))
 
     def __post_init__(self):
@@ -258,47 +279,127 @@ def _spec_coefficients(args):
     return (ci, co, th, a_m, b_m, c_m) + sums
 
 
-def _spec_row(rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, c_ss):
-    """Projected cost of one row at `ln alpha = rho` and its `ps >= 0`, from the
-    row's `_spec_coefficients`: `ssg = k.A + c_sq`, `sgg = k^2.B + k.C + c_qq`,
-    cost `c_ss - 2 ps ssg + ps^2 sgg` (a difference of large numbers: its rounding
-    error is ~1e-7 of the signal's chi^2 in float32, far below the noise's)."""
+def _lobe_sums(rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq):
+    """`(ssg, sgg)` of one row at `ln alpha = rho` from its `_spec_coefficients`:
+    `ssg = k.A + c_sq` (`sum w s g`) and `sgg = k^2.B + k.C + c_qq` (`sum w g^2`)."""
     k = brdf.ward_specular(1.0, rho, ci, co, th)
-    ssg = jnp.sum(k * a_m) + c_sq
-    sgg = jnp.sum(k * k * b_m + k * c_m) + c_qq
-    ok = sgg > 0
-    ps = jnp.where(ok, jnp.maximum(ssg, 0.0) / jnp.where(ok, sgg, 1.0), 0.0)
-    return jnp.maximum(c_ss - ps * (2.0 * ssg - ps * sgg), 0.0), ps
+    return jnp.sum(k * a_m) + c_sq, jnp.sum(k * k * b_m + k * c_m) + c_qq
 
 
-def _row_derivatives(rho, *coef):
-    """Cost and its first and second derivative in `ln alpha` (forward mode: one
+def _reduced_cost(b, a, c0, rho, inv_s2, l_ps, m_ps, l_rho, m_rho):
+    """Posterior cost of one row and its `ps >= 0`, from its reduced sums at `ln alpha = rho`:
+    the data's cost `c0 - 2 ps b + ps^2 a` (a difference of large numbers: its rounding
+    error is ~1e-7 of the signal's chi^2 in float32, far below the noise's) over the row's
+    residual scale `1 / inv_s2`, plus the Gaussian prior `l_ps (ps - m_ps)^2 +
+    l_rho (rho - m_rho)^2` (precisions `l`; 0: no prior)."""
+    den = inv_s2 * a + l_ps
+    ok = den > 0
+    ps = jnp.where(ok, jnp.maximum(inv_s2 * b + l_ps * m_ps, 0.0) / jnp.where(ok, den, 1.0), 0.0)
+    fit = jnp.maximum(c0 - ps * (2.0 * b - ps * a), 0.0)
+    return inv_s2 * fit + l_ps * (ps - m_ps) ** 2 + l_rho * (rho - m_rho) ** 2, ps
+
+
+def _spec_row(rho, *coef):
+    """Projected cost of one row at `ln alpha = rho` and its `ps >= 0`, from the row's
+    `_spec_coefficients` (pd held; no prior)."""
+    ssg, sgg = _lobe_sums(rho, *coef[:8])
+    return _reduced_cost(ssg, sgg, coef[8], rho, 1.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def _joint_coefficients(rows, d, q):
+    """Per-row sums of the joint fit of pd (per channel), ps and the lobe over every used
+    sample, the interreflected `(D, Q)` `(N, M, 3)` held: with `x_c = (E + D_c) / pi` (pd's
+    term) and `g_c = E k + Q_c` (the lobe's, `k` the unit lobe `(M,)`), the normal equations
+    at a roughness are `s11_c = sum w x_c^2`, `b1_c = sum w x_c y_c`, `s12_c = k.P_c + R_c`,
+    `s22 = k^2.B + k.C + c_qq`, `b2 = k.A + c_sq`. Returns `(cos_i, cos_o, theta_r, A, B, C,
+    c_sq, c_qq, P, R, b1, 1/s11, c0)`, `c0 = sum w y^2 - sum_c b1_c^2 / s11_c` (pd profiled
+    out; its bounds are left to the pd fit)."""
+    use = r_use = rows["use"][..., None]
+    w = jnp.where(r_use, rows["w2"], 0.0)
+    y, e = jnp.where(use, rows["y"], 0.0), rows["e"]
+    qv = jnp.where(use, q, 0.0)
+    x = (e[..., None] + d) / jnp.pi
+    s11 = jnp.sum(w * x * x, 1)
+    b1 = jnp.sum(w * x * y, 1)
+    inv11 = jnp.where(s11 > 0, 1.0 / jnp.where(s11 > 0, s11, 1.0), 0.0)
+    p = w * e[..., None] * x
+    r = jnp.sum(w * x * qv, 1)
+    a_m = e * jnp.sum(w * y, -1)
+    b_m = e * e * jnp.sum(w, -1)
+    c_m = 2.0 * e * jnp.sum(w * qv, -1)
+    c_sq, c_qq = jnp.sum(w * y * qv, (-2, -1)), jnp.sum(w * qv * qv, (-2, -1))
+    c0 = jnp.sum(w * y * y, (-2, -1)) - jnp.sum(b1 * b1 * inv11, -1)
+    return (rows["cos_i"], rows["cos_o"], rows["theta_r"], a_m, b_m, c_m, c_sq, c_qq, p, r, b1, inv11, c0)
+
+
+def _joint_sums(rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, p, r, b1, inv11):
+    """`(b, a)` of one row at `ln alpha = rho` (`_joint_coefficients`), pd profiled out:
+    `b = b2 - sum_c s12_c b1_c / s11_c`, `a = s22 - sum_c s12_c^2 / s11_c`."""
+    k = brdf.ward_specular(1.0, rho, ci, co, th)
+    s12 = k @ p + r
+    b = jnp.sum(k * a_m) + c_sq - jnp.sum(s12 * b1 * inv11)
+    a = jnp.sum(k * k * b_m + k * c_m) + c_qq - jnp.sum(s12 * s12 * inv11)
+    return b, a
+
+
+def _joint_row(rho, *coef):
+    """Posterior cost of one row at `ln alpha = rho`, pd profiled out, and its `ps`
+    (`coef`: `_joint_coefficients` then the prior's `inv_s2, l_ps, m_ps, l_rho, m_rho`)."""
+    b, a = _joint_sums(rho, *coef[:12])
+    return _reduced_cost(b, a, coef[12], rho, *coef[13:])
+
+
+def _joint_information(ps, rho, coef):
+    """The joint fit's pd `(N, 3)` at `(ps, rho)` and the Gauss-Newton variances (unit noise)
+    of pd `(N, 3)`, ps and rho `(N,)`: the inverse of the information matrix of
+    `(pd_c, ps, rho)`, through the Schur complement over pd (inf where singular)."""
+
+    def one(ps, rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, p, r, b1, inv11, c0):
+        k, dk = jax.jvp(lambda x: brdf.ward_specular(1.0, x, ci, co, th), (rho,), (jnp.ones_like(rho),))
+        s12, d12 = k @ p + r, ps * (dk @ p)
+        i_pp = jnp.sum(k * k * b_m + k * c_m) + c_qq - jnp.sum(s12 * s12 * inv11)
+        i_pr = ps * jnp.sum(dk * (k * b_m + 0.5 * c_m)) - jnp.sum(s12 * d12 * inv11)
+        i_rr = ps * ps * jnp.sum(dk * dk * b_m) - jnp.sum(d12 * d12 * inv11)
+        det = i_pp * i_rr - i_pr**2
+        ok = det > 1e-12 * jnp.maximum(i_pp * i_rr, 1e-300)
+        inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), jnp.inf)
+        v_pp, v_rr, v_pr = i_rr * inv_det, i_pp * inv_det, -i_pr * jnp.where(ok, inv_det, 0.0)
+        # pd's block of the inverse: 1/s11 + (1/s11)^2 e^T S^-1 e, e_c = (s12_c, d12_c).
+        spread = s12 * s12 * v_pp + 2.0 * s12 * d12 * v_pr + d12 * d12 * jnp.where(ok, v_rr, 0.0)
+        var_pd = jnp.where(inv11 > 0, inv11 + inv11 * inv11 * spread, jnp.inf)
+        pd = jnp.clip((b1 - ps * s12) * inv11, 0.0, 1.0)
+        return pd, var_pd, v_pp, v_rr
+
+    return jax.vmap(one)(ps, rho, *coef)
+
+
+def _rows_minimum(row, rho0, coef, steps, starts=()):
+    """`(ps, rho)` `(N,)` minimising `row(rho, *coef) -> (cost, ps)` per row (`coef` a tuple
+    of per-row arrays): the best of `rho0`, the `starts` and a 16-value grid over
+    `ln ALPHA_RANGE`, then safeguarded Newton steps (the derivatives by forward mode: one
     variable, so a second-order `jvp` is the cheapest way to both)."""
-    first = lambda r: jax.jvp(lambda x: _spec_row(x, *coef)[0], (r,), (jnp.ones_like(r),))  # noqa: E731
-    (cost, g), (_, h) = jax.jvp(first, (rho,), (jnp.ones_like(rho),))
-    return cost, g, h
+    lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
+    cost_rows = jax.vmap(lambda r, *c: row(r, *c)[0])
+    grid = jnp.linspace(lo, hi, _GRID, dtype=rho0.dtype)
+    costs = jax.vmap(lambda g: cost_rows(jnp.full_like(rho0, g), *coef))(grid)  # (G, N)
+    start, best = grid[jnp.argmin(costs, axis=0)], jnp.min(costs, axis=0)
+    for cand in (*starts, rho0):  # rho0 last: it wins ties
+        c = cost_rows(cand, *coef)
+        start, best = jnp.where(c <= best, cand, start), jnp.minimum(c, best)
 
+    def derivatives(r, *c):
+        first = lambda x: jax.jvp(lambda y: row(y, *c)[0], (x,), (jnp.ones_like(x),))  # noqa: E731
+        (cost, g), (_, h) = jax.jvp(first, (r,), (jnp.ones_like(r),))
+        return cost, 0.5 * g, 0.5 * h
 
-_cost_rows = jax.vmap(lambda rho, *coef: _spec_row(rho, *coef)[0])
-_derivative_rows = jax.vmap(_row_derivatives)
+    rho, _ = gauss_newton_1d(lambda r: jax.vmap(derivatives)(r, *coef), start, steps, lo, hi, radius=0.5)
+    _, ps = jax.vmap(row)(rho, *coef)
+    return ps, rho
 
 
 def _step_b_lm(rho0, args, steps):
-    """`(ps, rho)` `(N,)` minimising the projected cost: the best of `rho0` and a
-    16-value grid over `ln ALPHA_RANGE`, then safeguarded Newton steps."""
-    lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
-    coef = _spec_coefficients(args)
-    grid = jnp.linspace(lo, hi, _GRID, dtype=rho0.dtype)
-    costs = jax.vmap(lambda g: _cost_rows(jnp.full_like(rho0, g), *coef))(grid)  # (G, N)
-    start = jnp.where(_cost_rows(rho0, *coef) <= jnp.min(costs, axis=0), rho0, grid[jnp.argmin(costs, axis=0)])
-
-    def evaluate(rho):
-        cost, g, h = _derivative_rows(rho, *coef)
-        return cost, 0.5 * g, 0.5 * h
-
-    rho, _ = gauss_newton_1d(evaluate, start, steps, lo, hi, radius=0.5)
-    _, ps = jax.vmap(_spec_row)(rho, *coef)
-    return ps, rho
+    """`(ps, rho)` `(N,)` minimising the projected cost (`_rows_minimum` from `rho0`)."""
+    return _rows_minimum(_spec_row, rho0, _spec_coefficients(args), steps)
 
 
 def _step_b_simplex(ps0, rho0, args, steps):
@@ -588,6 +689,138 @@ def _misfit(scan, replay, index, fg, rows, estimate, dtype):
     return {"estimate": at_estimate, "truth": at_truth, "ratio": ratio}
 
 
+@partial(jax.jit, static_argnames=("steps",))
+def _own_lobes(rows, d, q, rho0, steps):
+    """Every row's own lobe through the interreflection model, `(D, Q)` held: pd, ps and
+    alpha jointly over all its used samples (`_joint_row`, pd profiled out) from `rho0`: pd,
+    ps, rho, their Gauss-Newton variances (`_joint_information`) and chi^2, and the row coefficients
+    `coef` (`_joint_coefficients`) the prior's fits reuse."""
+    coef = _joint_coefficients(rows, d, q)
+    none = tuple(jnp.full_like(rho0, v) for v in (1.0, 0.0, 0.0, 0.0, 0.0))
+    ps, rho = _rows_minimum(_joint_row, rho0, coef + none, steps)
+    ps = jnp.minimum(ps, PS_MAX)
+    pd, var_pd, var_ps, var_rho = _joint_information(ps, rho, coef)
+    b, a = jax.vmap(_joint_sums)(rho, *coef[:12])
+    return dict(pd=pd, var_pd=var_pd, ps=ps, rho=rho, var_ps=var_ps, var_rho=var_rho, chi2=jnp.maximum(coef[12] - ps * (2.0 * b - ps * a),
+                                                                                  0.0), coef=coef)
+
+
+@partial(jax.jit, static_argnames=("steps",))
+def _map_lobes(coef, prior, rho0, steps):
+    """Posterior modes `(ps, rho)` `(N,)` of every row's lobe under the Gaussian `prior`
+    (`inv_s2`, `l_ps`, `m_ps`, `l_rho`, `m_rho` `(N,)`, `_joint_row`), from the best of
+    `rho0`, the prior mean and the grid; and the row's own chi^2 there (the prior left out)."""
+    terms = (prior["inv_s2"], prior["l_ps"], prior["m_ps"], prior["l_rho"], prior["m_rho"])
+    ps, rho = _rows_minimum(_joint_row, rho0, coef + terms, steps, starts=(prior["m_rho"],))
+    ps = jnp.minimum(ps, PS_MAX)
+    b, a = jax.vmap(_joint_sums)(rho, *coef[:12])
+    return ps, rho, jnp.maximum(coef[12] - ps * (2.0 * b - ps * a), 0.0)
+
+
+@partial(jax.jit, static_argnames=("k",))
+def _material_reduced(coef, rho, labels, weights, k):
+    """`(G, 3, k)`: per ln roughness `rho` `(G, k)` and material, the `weights`-weighted sums
+    over its rows of `(c0, a, b)` (`_joint_sums`: pd profiled out; `prior.material_lobes`)."""
+
+    def one(rr):
+        b, a = jax.vmap(_joint_sums)(rr[labels], *coef[:12])
+        parts = jnp.stack([coef[12], a, b]) * weights[None]
+        return jax.vmap(lambda x: jax.ops.segment_sum(x, labels, num_segments=k))(parts)
+
+    return jax.lax.map(one, rho)
+
+
+def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, options):
+    """The shared reflectance prior (`jaxrefl.reflectance.prior`) on Method III's lobes, at the
+    kept iterate `theta` and its interreflected light `(D, Q)`: every point's own lobe through
+    the interreflection model (`_own_lobes`); materials clustered from Method III's own pd and
+    lobes (Method I's pd, interreflection left in, splits one material by its distance from a
+    concave part); each material's lobe fitted to all its points' samples at once
+    (`prior.material_lobes`); the empirical-Bayes prior of every lobe (`prior.lobe_prior`);
+    and every point's posterior mode (`_map_lobes`). Points whose own samples reject their
+    prior keep their own fit (`prior.prior_conflict`).
+
+    **Returns:** a dict of `(N,)` arrays `ps`, `rho`, `sd_ps`, `sd_rho` (posterior; inf where
+    neither the point nor its prior pins the lobe), `own` (the point's own samples pin its
+    lobe: lobe evidence, ps `min_snr` sd above 0, ln alpha known to +-1), `measured`, `pooled` (`prior.status_from_posterior`), `labels`;
+    and a meta dict. `std_pd` `(N, 3)`, `dark` `(N, 3)` (`local.dark_channels`) and `peak`
+    `(N,)` (each point's `T_spec` samples) as `local._features` and `prior.material_lobes`
+    take them."""
+    pd = theta[0]
+    steps = options.steps
+    own_fit = {k: (v if k == "coef" else np.asarray(v, np.float64))
+               for k, v in _own_lobes(rows, d, q, theta[2], steps).items()}
+    n_use = np.asarray(rows["use"]).sum(1)
+    dof = np.maximum(3.0 * n_use - 5.0, 1.0)  # 3 channels per sample less pd (3), ps and alpha
+    s2 = np.maximum(_noise_scale(np.where(observed_any, own_fit["chi2"], np.nan), np.where(observed_any, dof, 0)),
+                    1.0)
+    s2 = np.where(np.isfinite(s2), s2, 1.0)
+    var_ps, var_rho = (np.where(np.isfinite(own_fit[k]) & (own_fit[k] > 0), own_fit[k] * s2, np.inf)
+                       for k in ("var_ps", "var_rho"))
+    ps_own, rho_own = own_fit["ps"], own_fit["rho"]
+    # Its own samples pin a point's lobe: lobe evidence, ps above min_snr sd, ln alpha to +-1.
+    own = np.asarray(rows["lobe"]) & observed_any & (ps_own > options.min_snr * np.sqrt(var_ps)) \
+        & (np.sqrt(var_rho) < 1.0)
+    local = options.local
+    fit = {"pd": np.asarray(pd, np.float64), "std_pd": std_pd, "ps": ps_own, "std_ps": np.sqrt(var_ps),
+           "roughness": np.exp(rho_own), "std_ln_roughness": np.sqrt(var_rho)}
+    x, v = _features(fit, own, observed_any, dark)
+    materials = prior_mod.fit_materials(x, v, scan.vertices, k_max=local.materials)
+    labels, k = materials.labels, materials.k
+    inv_s2 = np.where(observed_any, 1.0 / s2, 0.0)
+    coef = own_fit["coef"]
+    dt = rows["y"].dtype
+    k_pad = -(-k // 8) * 8  # one compilation for every K up to 8
+
+    def material_sums(rho, labels_, k_, weights):
+        rho = np.pad(np.asarray(rho, np.float64), [(0, 0), (0, k_pad - k_)])
+        out = _material_reduced(coef, jnp.asarray(rho, dt), jnp.asarray(labels_), jnp.asarray(weights, dt), k_pad)
+        return np.asarray(out, np.float64)[..., :k_]
+
+    lobes = prior_mod.material_lobes(material_sums, labels, k, inv_s2, np.log(np.geomspace(*ALPHA_RANGE, _GRID)),
+                                     min_snr=options.min_snr, peak_samples=peak * observed_any)
+    prior = prior_mod.lobe_prior(ps_own, var_ps, rho_own, var_rho, own, labels, lobes, scan.vertices,
+                                 neighbours=local.prior_neighbours, fitted=observed_any & np.isfinite(var_ps)
+                                 & np.isfinite(var_rho))
+    avail = prior.available & observed_any
+    terms = {"inv_s2": inv_s2,
+             "l_ps": np.where(avail, 1.0 / np.where(avail, prior.var_ps, 1.0), 0.0),
+             "m_ps": np.where(avail, prior.mean_ps, 0.0),
+             "l_rho": np.where(avail, 1.0 / np.where(avail, prior.var_rho, 1.0), 0.0),
+             "m_rho": np.where(avail, prior.mean_rho, 0.0)}
+    start = np.where(own | ~avail, rho_own, prior.mean_rho)
+    ps_map, rho_map, chi2_map = (np.asarray(a, np.float64) for a in _map_lobes(
+        coef, {key: jnp.asarray(val, dt) for key, val in terms.items()}, jnp.asarray(start, dt), steps))
+    measured, pooled = prior_mod.status_from_posterior(own, var_ps, var_rho, prior)
+    conflict = prior_mod.prior_conflict(chi2_map, own_fit["chi2"], s2, avail)
+    measured, pooled = (measured | (own & conflict)) & observed_any, pooled & ~conflict & observed_any
+    post_ps = np.where(avail, 1.0 / (1.0 / var_ps + 1.0 / np.where(avail, prior.var_ps, 1.0)), var_ps)
+    post_rho = np.where(avail, 1.0 / (1.0 / var_rho + 1.0 / np.where(avail, prior.var_rho, 1.0)), var_rho)
+    mine = conflict | ~avail
+    ps = np.where(mine, ps_own, ps_map)
+    rho = np.where(mine, rho_own, rho_map)
+    pinned = measured | pooled
+    sd_ps = np.where(pinned, np.sqrt(np.where(mine, var_ps, post_ps)), np.inf)
+    sd_rho = np.where(pinned, np.sqrt(np.where(mine, var_rho, post_rho)), np.inf)
+    meta = {"materials": k, "bic": {str(key): float(b) for key, b in materials.bic.items()},
+            "material_lobes": [{"ps": float(lobes.ps[m]), "roughness": float(np.exp(lobes.rho[m])),
+                                "std_ps": float(lobes.sd_ps[m]), "std_ln_roughness": float(lobes.sd_rho[m]),
+                                "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
+                                "spread_ps": float(prior.spread_ps[m]),
+                                "spread_ln_roughness": float(prior.spread_rho[m])} for m in range(k)],
+            "points_pooled": int(pooled.sum()), "points_in_conflict_with_prior": int(conflict.sum())}
+    return {"ps": ps, "rho": rho, "sd_ps": sd_ps, "sd_rho": sd_rho, "own": own, "measured": measured,
+            "pooled": pooled, "labels": labels}, meta
+
+
+def _pd_std(fin, dof):
+    """`(N, 3)` standard deviation of step (a)'s pd at `_final`'s `fin`: its information, the
+    variance scaled by the reduced chi^2 of the lobe fit where above 1 (inf: no sample)."""
+    scale = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
+    info = np.asarray(fin["info_pd"], np.float64)
+    return np.where(info > 0, np.sqrt(scale / np.where(info > 0, info, 1.0)), np.inf)
+
+
 def _start(est: Estimate):
     """A valid Ward start/proposal from a Method I estimate."""
     pd = np.clip(est.pd, 0.0, 1.0)
@@ -720,25 +953,48 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     alpha = np.exp(rho)
     method_warnings = []
 
-    # Identifiability of the specular part, then the fill and pd with it.
+    # The lobes: (1) the iterations' own lobes, the unmeasured ones filled from them; (2) with
+    # the shared prior, every lobe's posterior through the interreflection model. pd is then
+    # taken to its fixed point under each; the one that explains the images better is kept.
     dof = np.asarray(_dof(rows["n_b"]), np.float64)
-    sd_ps, sd_rho = (np.asarray(v, np.float64) for v in _lobe_sd(fin["var_ps"], fin["var_rho"], fin["chi2"], rows))
-    identifiable = np.asarray(_identifiable(jnp.asarray(ps), fin["var_ps"], fin["var_rho"], fin["chi2"], rows,
-                                            options.min_snr, options.min_fit_p))
-    status = np.full(scan.n_points, MEASURED, np.int8)
-    known = identifiable
-    if known.any():
+    candidates = []
+
+    def finish(name, ps_c, rho_c, sd_ps_c, sd_rho_c, known, keep_known, own, extra):
+        if not known.any():
+            return
         nbr_f = jnp.asarray(nearest_candidates(scan.vertices, np.flatnonzero(known), options.fill_neighbours))
-        ps, rho = (np.array(x, np.float64) for x in _fill_lobes(
-            jnp.asarray(ps), jnp.asarray(rho), jnp.asarray(known), jnp.asarray(sd_ps), jnp.asarray(sd_rho),
+        filled = (np.array(x, np.float64) for x in _fill_lobes(
+            jnp.asarray(ps_c), jnp.asarray(rho_c), jnp.asarray(known), jnp.asarray(sd_ps_c), jnp.asarray(sd_rho_c),
             nbr_f, fill_target, affinity=_material_affinity(jnp.asarray(pd), nbr_f, options.fill_pd_scale)))
+        ps_c, rho_c = ((np.where(known, x, f) for x, f in zip((ps_c, rho_c), filled)) if keep_known else filled)
+        theta_c = _polish(replay.data, replay.static, index, fg, rows,
+                          tuple(jnp.asarray(x, dt) for x in (pd, ps_c, rho_c)), options.polish)
+        fin_c = _final(replay.data, replay.static, index, fg, rows, theta_c)
+        candidates.append(dict(name=name, pd=np.array(theta_c[0], np.float64), ps=ps_c, rho=rho_c, sd_ps=sd_ps_c,
+                               sd_rho=sd_rho_c, known=known, own=own, fin=fin_c, cost=float(fin_c["cost"]), **extra))
+
+    if options.lobe_prior and not options.local.paper:
+        peak = (use & (rows_np["classes"] == T_SPEC)).sum(1)
+        post, post_meta = _lobe_posterior(scan, rows, best[0], fin["d"], fin["q"], _pd_std(fin, dof), observed_any,
+                                          dark_channels(rows_np), peak, options)
+        finish("prior", post["ps"], post["rho"], post["sd_ps"], post["sd_rho"], post["measured"] | post["pooled"],
+               True, post["own"], dict(pooled=post["pooled"], labels=post["labels"], meta=post_meta))
+    sd_ps_f, sd_rho_f = (np.asarray(v, np.float64) for v in _lobe_sd(fin["var_ps"], fin["var_rho"], fin["chi2"], rows))
+    own_f = np.asarray(_identifiable(jnp.asarray(ps), fin["var_ps"], fin["var_rho"], fin["chi2"], rows,
+                                     options.min_snr, options.min_fit_p))
+    finish("fill", ps, rho, sd_ps_f, sd_rho_f, own_f, False, own_f, {})
+    status = np.full(scan.n_points, MEASURED, np.int8)
+    labels, prior_meta, lobe_costs = init.material, {}, {c["name"]: c["cost"] for c in candidates}
+    if candidates:
+        pick = min(candidates, key=lambda c: c["cost"])  # the prior's first: it wins a tie
+        pd, ps, rho, known, identifiable = (pick[k] for k in ("pd", "ps", "rho", "known", "own"))
+        sd_ps, sd_rho, fin = pick["sd_ps"], pick["sd_rho"], pick["fin"]
         alpha = np.exp(rho)
+        if pick["name"] == "prior":
+            labels, prior_meta = pick["labels"], pick["meta"]
+            status[pick["pooled"]] = POOLED
         in_window = window_reach(adjacency, options.window) @ known.astype(np.float64) > 0
         status[~known] = np.where(in_window[~known], INTERPOLATED, UNRESOLVED)
-        theta_f = _polish(replay.data, replay.static, index, fg, rows,
-                          tuple(jnp.asarray(x, dt) for x in (pd, ps, rho)), options.polish)
-        fin = _final(replay.data, replay.static, index, fg, rows, theta_f)
-        pd = np.array(theta_f[0], np.float64)
         if not float(fin["cost"]) <= float(fin_best["cost"]):
             # The filled lobes explain the images worse than the best iterate did: the measured
             # points' lobes do not carry over to the others. Keep the best iterate, whose other
@@ -751,18 +1007,16 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
             pd, ps, alpha = (np.array(x, np.float64) for x in best[0])
             alpha = np.exp(alpha)
     else:  # no specular reflection measured anywhere: none reported, roughness undefined (0)
+        identifiable = known = np.zeros(scan.n_points, bool)
+        sd_ps = sd_rho = np.full(scan.n_points, np.inf)
         ps, alpha = np.zeros_like(ps), np.zeros_like(alpha)
         status[:] = UNRESOLVED
-    scale_a = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
-    info = np.asarray(fin["info_pd"], np.float64)
-    std_pd = np.where(info > 0, np.sqrt(scale_a / np.where(info > 0, info, 1.0)), np.inf)
+    std_pd = _pd_std(fin, dof)
     std_ps = np.where(known, sd_ps, np.inf)
     std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
-    # pd, as Method I's, shares evidence with its material-mates (the start's materials).
-    prior_meta = {}
-    if init.material is not None:
-        _pd_with_prior(scan, init.material, observed_any, dark_channels(rows_np), pd, std_pd, options.local,
-                       prior_meta)
+    # pd, as Method I's, shares evidence with its material-mates (the prior's materials).
+    if labels is not None:
+        _pd_with_prior(scan, labels, observed_any, dark_channels(rows_np), pd, std_pd, options.local, prior_meta)
     # Unobserved points keep the pd the images were explained with (their start's, filled by
     # Method I): their light reaches the observed points, and in a cavity of high albedo a
     # window fill from the iterations' per-point pd would change the images it returns.
@@ -781,6 +1035,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "stored_photons": int(replay.n_photons),
         "gather_rays_per_observation": n_rays, "gather_entries": 0 if fg is None else int(fg.row.shape[0]),
         "quantisation_step": q_step,
+        "lobe_stage": {"image_difference": lobe_costs, "kept": pick["name"] if candidates else None},
         "points_with_observations": int(observed_any.sum()),
         "points_with_diffuse_only_sample": int((~joint).sum()),
         "start": {"coverage": float(np.mean(init.status == MEASURED))},
