@@ -742,8 +742,8 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
 
     **Returns:** a dict of `(N,)` arrays `ps`, `rho`, `sd_ps`, `sd_rho` (posterior; inf where
     neither the point nor its prior pins the lobe), `own` (the point's own samples pin its
-    lobe: lobe evidence, ps `min_snr` sd above 0, ln alpha known to +-1), `measured`, `pooled` (`prior.status_from_posterior`), `labels`;
-    and a meta dict. `std_pd` `(N, 3)`, `dark` `(N, 3)` (`local.dark_channels`) and `peak`
+    lobe: lobe evidence, ps `min_snr` sd above 0, ln alpha known to +-1), `measured`,
+    `pooled` (`prior.status_from_posterior`), `labels`; and a meta dict. `std_pd` `(N, 3)`, `dark` `(N, 3)` (`local.dark_channels`) and `peak`
     `(N,)` (each point's `T_spec` samples) as `local._features` and `prior.material_lobes`
     take them."""
     pd = theta[0]
