@@ -67,7 +67,10 @@ def test_convex_object_matches_truth_and_method_one(convex, solver, request):
     measured = est.specular_identifiable
     assert measured.any()
     assert np.median(np.abs(est.ps[measured] / convex.true_ps[measured] - 1)) < 0.1
-    assert np.all(est.std_ps[~measured] == np.inf) and np.all(np.isfinite(est.std_ps[measured]))
+    from jaxrefl.status import Status
+
+    known = np.isin(est.status, (Status.MEASURED, Status.POOLED))  # own samples or the prior pin the lobe
+    assert np.all(known[measured]) and np.all(est.std_ps[~known] == np.inf) and np.all(np.isfinite(est.std_ps[known]))
     misfit = est.meta["misfit"]  # image difference at the estimate and at the truth
     assert misfit["truth"] > 0 and misfit["estimate"] > 0 and misfit["ratio"] == misfit["estimate"] / misfit["truth"]
 
@@ -99,12 +102,8 @@ def test_step_a_samples_follow_whose_lobe_it_is():
 def test_estimate_explains_the_images_as_well_as_the_truth(convex_photon):
     """Convergence checked, not assumed: through the same forward model (direct light, photon
     replay) the image difference at Method III's estimate is within 10 % of that at the truth
-    (below 1 where the estimate also fits some of the noise). On this convex scene the lobe fill
-    from the few points step (b) measures explains the images 10-100x worse than the truth:
-    Method III sees that, keeps its best iterate and says so."""
+    (below 1 where the estimate also fits some of the noise)."""
     assert convex_photon.meta["misfit"]["ratio"] <= 1.1, convex_photon.meta["misfit"]
-    assert any("kept the best iteration" in w for w in convex_photon.meta["method_warnings"])
-    assert convex_photon.meta["method_warnings"][0] in convex_photon.meta["warnings"]
 
 
 def test_step_b_cost_from_channel_sums_equals_direct_sum():
@@ -193,13 +192,19 @@ def test_joint_fit_recovers_pd_and_lobe_and_its_information_is_the_gauss_newton_
 
 
 def test_lobe_prior_explains_the_images_better_than_the_fill(convex, convex_photon):
-    """With `lobe_prior` the shared prior's lobes (fitted jointly with pd through the
-    forward model) are a second candidate: on the vase they explain the images better than
-    the filled lobes and than the best iterate (which the default keeps), so they are kept,
-    most points `pooled` with finite std, and the errors stay at the default's."""
+    """The shared prior's lobes (fitted jointly with pd through the forward model, the
+    default) are a second candidate for the final lobes. On the vase the lobe fill from the
+    few points step (b) measures explains the images worse than the best iterate: without the
+    prior (`lobe_prior=False`) Method III keeps its best iterate and says so. The prior's
+    lobes explain them better than both: they are kept, most points `pooled` with finite std,
+    and the errors are no worse."""
     from jaxrefl.status import Status
 
-    est = estimate_photon(convex, PhotonOptions(**CONVEX_OPTIONS, lobe_prior=True))
+    fill = estimate_photon(convex, PhotonOptions(**CONVEX_OPTIONS, lobe_prior=False))
+    assert "prior" not in fill.meta["lobe_stage"]["image_difference"]
+    assert any("kept the best iteration" in w for w in fill.meta["method_warnings"])
+    assert fill.meta["method_warnings"][0] in fill.meta["warnings"]
+    est = convex_photon
     stage = est.meta["lobe_stage"]
     assert stage["kept"] == "prior" and stage["image_difference"]["prior"] < stage["image_difference"]["fill"]
     assert not est.meta["method_warnings"] and est.meta["misfit"]["ratio"] <= 1.1
@@ -212,7 +217,7 @@ def test_lobe_prior_explains_the_images_better_than_the_fill(convex, convex_phot
     for name in ("ps", "roughness"):
         err = lambda e: np.median(np.abs(getattr(e, name) / getattr(convex, "true_" + ("alpha" if name ==  # noqa: E731
                                                                                        "roughness" else name)) - 1)[obs])
-        assert err(est) <= 1.2 * err(convex_photon) + 0.01, (name, err(est), err(convex_photon))
+        assert err(est) <= 1.2 * err(fill) + 0.01, (name, err(est), err(fill))
     assert np.median(_rel(est, convex)) < 0.005
 
 

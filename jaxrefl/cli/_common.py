@@ -101,10 +101,10 @@ def add_estimate_options(p):
                         "taken until they pin ln ps and ln alpha to this standard deviation")
     g.add_argument("--fill-neighbours", type=int, default=64, help="most measured lobes one point's lobe uses")
     g.add_argument("--polish", type=int, default=10, help="steps (a) at the final lobes")
-    g.add_argument("--lobe-prior", action="store_true",
-                   help="also fit every lobe with the shared reflectance prior through the interreflection model "
-                        "(pd profiled out, materials' joint lobes); the final lobes that explain the images "
-                        "better are kept")
+    g.add_argument("--no-lobe-prior", dest="lobe_prior", action="store_false",
+                   help="final lobes from the iterations' own fits and the fill only (default: also fit every lobe "
+                        "with the shared reflectance prior through the interreflection model, pd profiled out, and "
+                        "keep the lobes that explain the images better)")
     g = p.add_argument_group("auto (model only what the scene needs)")
     g.add_argument("--target-error", type=float, default=0.0,
                    help="relative pd error you accept (median per region): a cheaper method that reaches it is "
@@ -136,7 +136,7 @@ def method_from_options(options) -> Local | Radiosity | Photon | Auto:
               "min_snr": o.min_snr, "window": o.window, "gather_rays": o.gather_rays,
               "gather_budget": o.gather_budget, "min_fit_p": o.min_fit_p, "fill_sd": o.fill_sd,
               "fill_pd_scale": o.fill_pd_scale, "fill_neighbours": o.fill_neighbours, "polish": o.polish,
-              "lobe_prior": getattr(o, "lobe_prior", False)}
+              "lobe_prior": getattr(o, "lobe_prior", True)}
     if o.method == "radiosity":
         return Radiosity(**radiosity, local=local)
     if o.method == "photon":

@@ -51,13 +51,18 @@ class MeshKernel(NamedTuple):
     `neighbours` `(N, D)` int32 (a vertex and its one-ring, padded with itself),
     `weights` `(N, D)` float rows summing to 1 (0 on padding); `area` `(S + 1, N)`
     `P^s A` [m^2]; `kish_area` `(S + 1, N)` `(P^s A)^2 / ((P^s)^2 A)` [m^2], the
-    effective area of the level-`s` kernel; `matrix` the sparse `P` (CSR)."""
+    effective area of the level-`s` kernel; `matrix` the sparse `P` (CSR); `max_level`
+    `(N,)` int the widest level whose kernel holds no vertex facing away from the vertex
+    (normals more than 90 degrees apart: the two see disjoint half-spaces, so their photons
+    are not the same light; a kernel that grew over a thin wall's rim would bring the
+    inside's light to the outside); all `S` where no normals were given."""
 
     neighbours: np.ndarray
     weights: np.ndarray
     area: np.ndarray
     kish_area: np.ndarray
     matrix: sp.csr_matrix
+    max_level: np.ndarray
 
 
 class Splat(NamedTuple):
@@ -75,8 +80,14 @@ class Splat(NamedTuple):
     tan2: np.ndarray
 
 
-def mesh_kernel(vertices, faces, max_rings: int = 5) -> MeshKernel:
-    """Build the smoothing operator and its level normalisers (levels `0..max_rings`)."""
+#: A normal this far below perpendicular to the gathering vertex's faces away from it (a
+#: right-angle crease, normals 90 degrees apart up to rounding, does not).
+_FACING_AWAY = -1e-6
+
+
+def mesh_kernel(vertices, faces, max_rings: int = 5, normals=None) -> MeshKernel:
+    """Build the smoothing operator and its level normalisers (levels `0..max_rings`), and
+    with `normals` `(N, 3)` (unit) each vertex's widest level without a vertex facing away."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     n = len(v)
@@ -100,13 +111,21 @@ def mesh_kernel(vertices, faces, max_rings: int = 5) -> MeshKernel:
     area = [areas]
     kish = [areas.copy()]
     ps = sp.identity(n, format="csr")
-    for _ in range(max_rings):
+    max_level = np.full(n, max_rings, np.int32)
+    open_ = np.ones(n, bool)  # no vertex facing away within the levels so far
+    for s in range(1, max_rings + 1):
         ps = (p @ ps).tocsr()
         ka = ps @ areas
         area.append(ka)
         k2a = ps.multiply(ps) @ areas
         kish.append(np.where(k2a > 0, ka * ka / np.where(k2a > 0, k2a, 1.0), 0.0))
-    return MeshKernel(nbr.astype(np.int32), wts, np.stack(area), np.stack(kish), p)
+        if normals is not None:
+            rows = np.repeat(np.arange(n), np.diff(ps.indptr))
+            dots = np.einsum("ij,ij->i", normals[rows], normals[ps.indices])
+            closes = open_ & (np.minimum.reduceat(dots, ps.indptr[:-1]) < _FACING_AWAY)
+            max_level[closes] = s - 1
+            open_ &= ~closes
+    return MeshKernel(nbr.astype(np.int32), wts, np.stack(area), np.stack(kish), p, max_level)
 
 
 _CHUNK = 200_000
@@ -181,7 +200,8 @@ def splat_geometry(vertices, faces, normals, cam_pos, face, bary, direction, lig
 
 def choose_levels(kernel: MeshKernel, splat: Splat, power, n_lights: int, target: float) -> np.ndarray:
     """`(N, M)` int smoothing level per (vertex, light): the smallest whose
-    predicted effective count of photons reaches `target` (else the largest).
+    predicted effective count of photons reaches `target` (else the largest), at most the
+    vertex's `kernel.max_level`.
 
     The count is predicted, not measured at each level: the photon density
     comes from the widest kernel (low noise) and is multiplied by each level's
@@ -204,7 +224,8 @@ def choose_levels(kernel: MeshKernel, splat: Splat, power, n_lights: int, target
     ratio = np.where(k2 > 0, k1 * k1 / np.where(k2 > 0, k2 * area, 1.0), 0.0)  # rho1^2 / rho2
     n_eff = ratio[None] * kernel.kish_area[:, :, None]  # (S + 1, N, M)
     enough = n_eff >= target
-    return np.where(enough.any(axis=0), np.argmax(enough, axis=0), top).astype(np.int32)
+    level = np.where(enough.any(axis=0), np.argmax(enough, axis=0), top)
+    return np.minimum(level, kernel.max_level[:, None]).astype(np.int32)
 
 
 def gather_radiance(kernel_nbr, kernel_w, inv_area, level, splat: Splat, power, alpha, n_points: int,

@@ -87,19 +87,18 @@ since each point's pd depends through the interreflected light on its neighbours
 lobes and pd (refitting only the filled points, once, left pd beside a fold further
 off: `benchmarks/RESULTS_notes.md`).
 
-**Shared prior on the lobes** (`lobe_prior`, off by default; `_lobe_posterior`): a second
-candidate for the final lobes. At the kept iterate's interreflected light every point's
-lobe is fitted jointly with its pd over all its samples (pd profiled out, `_joint_row`:
-the alternation of steps (a) and (b) trades pd against the lobe slowly along their common
-valley, and stalls); materials are clustered from those fits (`prior.fit_materials`), each
-material's lobe is fitted to all its points' samples at once (`prior.material_lobes`), and
+**Shared prior on the lobes** (`lobe_prior`, on by default, not under `local.paper`;
+`_lobe_posterior`): a second candidate for the final lobes. At the kept iterate's
+interreflected light every point's lobe is fitted jointly with its pd over all its samples
+(pd profiled out, `_joint_row`: the alternation of steps (a) and (b) trades pd against the
+lobe slowly along their common valley, and stalls); materials are clustered by colour
+(`prior.fit_materials` on pd), each material's lobe is fitted to all its points' samples at
+once (`prior.material_lobes`; a lobe at the edge of the roughness range does not count), and
 each point takes its posterior mode under the empirical-Bayes prior (`prior.lobe_prior`;
 `measured` or `pooled` by `prior.status_from_posterior`, its own fit where its samples
 reject the prior). pd is taken to its fixed point under both candidates and the lobes with
-the lower image difference are kept (`meta['lobe_stage']`). On a uniform glossy fold it
-cuts the pd error by more than half; where per-point clusters go wrong (a two-glaze cup)
-its lower image difference comes with worse lobes, which is why it is not the default
-(measurements: `benchmarks/RESULTS_rigs_gi.md`).
+the lower image difference are kept (`meta['lobe_stage']`) (measurements:
+`benchmarks/RESULTS_rigs_gi.md`).
 
 Per-point lights (a rotating scanner, `light_pos` `(N, M, 3)`) are binned into
 light configurations as Method II (`radiosity.light_configs`, `light_bin`);
@@ -110,7 +109,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 
 import jax
@@ -174,8 +173,8 @@ class PhotonOptions:
     identifiability test; `fill_sd`, `fill_neighbours`, `fill_pd_scale` the lobe fill;
     `polish` steps (a) at the final lobes; `window` the ring that decides
     `interpolated` against `unresolved`; `lobe_prior` the shared prior's lobes as a second
-    candidate for the final lobes (`_lobe_posterior`; off by default: measurements in
-    `benchmarks/RESULTS_rigs_gi.md`); `local` Method I options of the start (Ward)."""
+    candidate for the final lobes (`_lobe_posterior`; not under `local.paper`); `local` Method I
+    options of the start (Ward)."""
 
     photons: int = 1_000_000
     iterations: int = 50
@@ -196,7 +195,7 @@ class PhotonOptions:
     fill_pd_scale: float = 0.2
     polish: int = 10
     window: int = 5
-    lobe_prior: bool = False
+    lobe_prior: bool = True
     local: LocalOptions = field(default_factory=lambda: LocalOptions(model="ward"))
 
     def __post_init__(self):
@@ -733,9 +732,9 @@ def _material_reduced(coef, rho, labels, weights, k):
 def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, options):
     """The shared reflectance prior (`jaxrefl.reflectance.prior`) on Method III's lobes, at the
     kept iterate `theta` and its interreflected light `(D, Q)`: every point's own lobe through
-    the interreflection model (`_own_lobes`); materials clustered from Method III's own pd and
-    lobes (Method I's pd, interreflection left in, splits one material by its distance from a
-    concave part); each material's lobe fitted to all its points' samples at once
+    the interreflection model (`_own_lobes`); materials clustered by the colour of Method III's
+    pd (Method I's, interreflection left in, splits one material by its distance from a concave
+    part); each material's lobe fitted to all its points' samples at once
     (`prior.material_lobes`); the empirical-Bayes prior of every lobe (`prior.lobe_prior`);
     and every point's posterior mode (`_map_lobes`). Points whose own samples reject their
     prior keep their own fit (`prior.prior_conflict`).
@@ -765,7 +764,9 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
     fit = {"pd": np.asarray(pd, np.float64), "std_pd": std_pd, "ps": ps_own, "std_ps": np.sqrt(var_ps),
            "roughness": np.exp(rho_own), "std_ln_roughness": np.sqrt(var_rho)}
     x, v = _features(fit, own, observed_any, dark)
-    materials = prior_mod.fit_materials(x, v, scan.vertices, k_max=local.materials)
+    # Materials by colour alone: a lobe's own fit is loose wherever pd and the lobe trade off
+    # (a flash beside the camera), and clusters that split on it take lobes of their own.
+    materials = prior_mod.fit_materials(x[:, :3], v[:, :3], scan.vertices, k_max=local.materials)
     labels, k = materials.labels, materials.k
     inv_s2 = np.where(observed_any, 1.0 / s2, 0.0)
     coef = own_fit["coef"]
@@ -777,8 +778,13 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
         out = _material_reduced(coef, jnp.asarray(rho, dt), jnp.asarray(labels_), jnp.asarray(weights, dt), k_pad)
         return np.asarray(out, np.float64)[..., :k_]
 
-    lobes = prior_mod.material_lobes(material_sums, labels, k, inv_s2, np.log(np.geomspace(*ALPHA_RANGE, _GRID)),
+    grid = np.log(np.geomspace(*ALPHA_RANGE, _GRID))
+    lobes = prior_mod.material_lobes(material_sums, labels, k, inv_s2, grid,
                                      min_snr=options.min_snr, peak_samples=peak * observed_any)
+    # A joint lobe at the edge of the roughness range searched is a bound, not a located minimum.
+    step = grid[1] - grid[0]
+    lobes = replace(lobes, identifiable=lobes.identifiable & (lobes.rho > grid[0] + step)
+                    & (lobes.rho < grid[-1] - step))
     prior = prior_mod.lobe_prior(ps_own, var_ps, rho_own, var_rho, own, labels, lobes, scan.vertices,
                                  neighbours=local.prior_neighbours, fitted=observed_any & np.isfinite(var_ps)
                                  & np.isfinite(var_rho))

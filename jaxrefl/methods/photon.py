@@ -746,7 +746,7 @@ class PhotonReplay:
             raise ValueError(f"max_depth: the paths have {len(paths.level_offsets) - 1} bounce levels")
         cam = _broadcast_positions(cam_pos, len(v), m, "cam_pos")
         t1 = time.perf_counter()
-        kernel = gather.mesh_kernel(v, f, max_rings)
+        kernel = gather.mesh_kernel(v, f, max_rings, nrm)
         splat = gather.splat_geometry(v, f, nrm, cam, paths.face, paths.bary, paths.direction, paths.light)
         if not first_bounce:  # the photons stay (parents of deeper ones) but gather no light
             splat = gather.Splat(*(x[paths.bounce[splat.photon] > 1] for x in splat))
