@@ -12,7 +12,7 @@ Per cell, on the whole scan (no held-out lights), Ward model throughout:
 - `I`: `estimate_local(scan, LocalOptions(model='ward'))` (direct light only, shared prior);
 - `II`: `estimate_radiosity(scan, RadiosityOptions(local=LocalOptions(model='ward')))`;
 - `III`: `estimate_photon(scan, PhotonOptions(photons=P, iterations=K))`, the other options
-  at their defaults; `III lobe prior` the same with `lobe_prior=True` (run once, no target);
+  at their defaults; `III no lobe prior` the same with `lobe_prior=False` (run once, no target);
 - `auto`: `estimate_auto(scan, AutoOptions(local=LocalOptions(model='ward'),
   photon={'photons': P, 'iterations': K}))`.
 
@@ -58,9 +58,9 @@ jax.config.update("jax_enable_x64", True)
 
 from benchmarks.rigs import _err_string, _findings, _finite, _json_default, _sanitise  # noqa: E402
 
-METHODS = ("I", "II", "III", "III lobe prior", "auto")
+METHODS = ("I", "II", "III", "III no lobe prior", "auto")
 DEFAULTS = "III defaults"  # Method III at `PhotonOptions()` (1M photons, 50 iterations), run once, no target
-PRIOR = "III lobe prior"  # Method III with `lobe_prior=True`, run once, no target
+PRIOR = "III no lobe prior"  # Method III with `lobe_prior=False`, run once, no target
 ONCE = (DEFAULTS, PRIOR)
 SINGLE = ("I", "II", "III")
 NEAR_FOLD = 0.02  # m
@@ -191,7 +191,7 @@ def _methods(photon):
         "III": lambda scan, caster: estimate_photon(scan, PhotonOptions(**photon), caster),
         "auto": lambda scan, caster: estimate_auto(scan, AutoOptions(local=ward, photon=dict(photon)), caster),
         DEFAULTS: lambda scan, caster: estimate_photon(scan, PhotonOptions(), caster),
-        PRIOR: lambda scan, caster: estimate_photon(scan, PhotonOptions(**photon, lobe_prior=True), caster),
+        PRIOR: lambda scan, caster: estimate_photon(scan, PhotonOptions(**photon, lobe_prior=False), caster),
     }
 
 
@@ -343,9 +343,8 @@ def write_report(records, run, out, json_out=True):
         "default (final gather 1024 rays per observation, halved to the 8M budget; lm solver); auto "
         "`AutoOptions(local=..., photon=same)`. Each run twice; `s warm` is the second run (compiled, form "
         "factors cached), `s first` the first. `III defaults` (where listed): Method III at `PhotonOptions()` "
-        "(1M photons per light, 50 iterations), run once, read by no target. `III lobe prior`: Method III as "
-        "above with `lobe_prior=True` (the shared prior's lobes as a second candidate), run once, read by no "
-        "target.",
+        "(1M photons per light, 50 iterations), run once, read by no target. `III no lobe prior`: Method III "
+        "as above with `lobe_prior=False` (the final lobes from the fill only), run once, read by no target.",
         f"- Errors: median (p90) relative error over every observed point, whatever its status; roughness = "
         f"Ward alpha; `pd interrefl.`: median pd error of the observed points whose median share of "
         f"interreflected light is >= {INTERREFLECTED:.0%} (their count in the second column); `near fold`: "
