@@ -1020,9 +1020,25 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     std_pd = _pd_std(fin, dof)
     std_ps = np.where(known, sd_ps, np.inf)
     std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
-    # pd, as Method I's, shares evidence with its material-mates (the prior's materials).
+    # pd, as Method I's, shares evidence with its material-mates (the prior's materials). Here
+    # each point's pd also lights the others: in a cavity of high albedo the prior's pulls,
+    # each within its point's noise, add up in the interreflected light. The prior stays only
+    # if the images allow it: the image difference may rise by at most one unit of the
+    # residual variance per pd value (what pulls within the noise cost).
     if labels is not None:
+        kept = pd.copy(), std_pd.copy()
         _pd_with_prior(scan, labels, observed_any, dark_channels(rows_np), pd, std_pd, options.local, prior_meta)
+        before = float(fin["cost"])
+        theta_p = tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(np.clip(alpha, *ALPHA_RANGE))))
+        after = float(_final(replay.data, replay.static, index, fg, rows, theta_p)["cost"])
+        s2 = max(1.0, before / max(3.0 * float(use.sum()), 1.0))
+        allowed = before + 3.0 * float(observed_any.sum()) * s2
+        prior_meta["pd_prior_image_difference"] = {"without": before, "with": after, "allowed": allowed}
+        if not after <= allowed:
+            pd[:], std_pd[:] = kept
+            method_warnings.append(f"the pd prior raised Method III's image difference from {before:.4g} to "
+                                   f"{after:.4g} (allowed {allowed:.4g}): each point keeps its own pd")
+            logger.warning(method_warnings[-1])
     # Unobserved points keep the pd the images were explained with (their start's, filled by
     # Method I): their light reaches the observed points, and in a cavity of high albedo a
     # window fill from the iterations' per-point pd would change the images it returns.
