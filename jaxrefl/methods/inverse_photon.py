@@ -964,6 +964,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     # taken to its fixed point under each; the one that explains the images better is kept.
     dof = np.asarray(_dof(rows["n_b"]), np.float64)
     candidates = []
+    dark = dark_channels(rows_np)
 
     def finish(name, ps_c, rho_c, sd_ps_c, sd_rho_c, known, keep_known, own, extra):
         if not known.any():
@@ -982,7 +983,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     if options.lobe_prior and not options.local.paper:
         peak = (use & (rows_np["classes"] == T_SPEC)).sum(1)
         post, post_meta = _lobe_posterior(scan, rows, best[0], fin["d"], fin["q"], _pd_std(fin, dof), observed_any,
-                                          dark_channels(rows_np), peak, options)
+                                          dark, peak, options)
         finish("prior", post["ps"], post["rho"], post["sd_ps"], post["sd_rho"], post["measured"] | post["pooled"],
                True, post["own"], dict(pooled=post["pooled"], labels=post["labels"], meta=post_meta))
     sd_ps_f, sd_rho_f = (np.asarray(v, np.float64) for v in _lobe_sd(fin["var_ps"], fin["var_rho"], fin["chi2"], rows))
@@ -1027,7 +1028,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     # residual variance per pd value (what pulls within the noise cost).
     if labels is not None:
         kept = pd.copy(), std_pd.copy()
-        _pd_with_prior(scan, labels, observed_any, dark_channels(rows_np), pd, std_pd, options.local, prior_meta)
+        _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
         before = float(fin["cost"])
         theta_p = tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(np.clip(alpha, *ALPHA_RANGE))))
         after = float(_final(replay.data, replay.static, index, fg, rows, theta_p)["cost"])
