@@ -884,6 +884,7 @@ def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) 
     np.clip(pd, 0.0, 1.0, out=pd)  # the fit's bounds
     for m, entry in enumerate(meta.get("material_lobes", [])):
         entry["spread_pd"] = [float(v) if np.isfinite(v) else None for v in diffuse.spread[m]]  # strict JSON
+        entry["pd_neighbours"] = int(diffuse.neighbours[m])  # 0: the whole material
     meta["points_with_diffuse_prior"] = int((observed_any & diffuse.available).sum())
     meta["points_in_conflict_with_diffuse_prior"] = int(diffuse.conflict.sum())
 

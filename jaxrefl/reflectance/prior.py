@@ -33,8 +33,9 @@ Each point's estimate is then the maximum a posteriori of its own likelihood and
 names which of the two dominated.
 
 5. **pd** (`diffuse_prior`): per channel, the leave-one-out mean (or local plane) of the
-   material-mates' own pd, as wide as the field's spread about it; each point's pd given its
-   lobe is then its Gaussian posterior.
+   nearest material-mates' own pd, or of all of them where cross-validation finds the
+   material uniform, as wide as the field's spread about it; each point's pd given its lobe
+   is then its Gaussian posterior.
 """
 
 from __future__ import annotations
@@ -624,6 +625,35 @@ def _field_search(positions, mine, at, neighbours, plane=False):
     return own_idx, tree, dist, nbr, usable, sample, (_plane_design(positions, nbr, at) if plane else None)
 
 
+def _spread_terms(value, var, mine, anchor=0.0, anchor_var=np.inf):
+    """What a field's prior at the measured points `mine` `(N,)` rests on: the material's
+    `centre` (its `anchor` where that is finite, else the median measured value), the `total`
+    spread of the measured values about it beyond their noise (neighbours differ from a point
+    by it, and so does the material's value), the `resolution` of a variance estimated from
+    `n` points, `median own variance * sqrt(2 / n)`, and the floored variances `(N,)`."""
+    own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
+    centre = anchor if np.isfinite(anchor_var) else float(np.median(own_values))
+    resolution = float(np.median(own_var)) * np.sqrt(2.0 / mine.sum()) + _VAR_FLOOR
+    return centre, _robust_spread(own_values - centre, own_var), resolution, np.maximum(var, _VAR_FLOOR)
+
+
+def _material_field(value, var, mine, at):
+    """The prior of one quantity when a material is uniform: at the points `at` `(m,)` the
+    precision-weighted mean of all its measured values `mine` `(N,)` but the point's own
+    (leave-one-out), and the spread of the measured values about those means beyond their
+    noise, never below the resolution (`_spread_terms`). Returns `(mean, var_of_mean,
+    spread)`, each `(N,)` (set at `at`)."""
+    n = len(value)
+    _, total, resolution, var_f = _spread_terms(value, var, mine)
+    w = np.where(mine, 1.0 / (var_f + total + resolution), 0.0)
+    loo_w = w.sum() - w[at]
+    mean, mean_var = np.zeros(n), np.full(n, np.inf)
+    mean[at] = np.divide(np.sum(w * value) - w[at] * value[at], loo_w, out=np.zeros(len(at)), where=loo_w > 0)
+    mean_var[at] = np.divide(1.0, loo_w, out=np.full(len(at), np.inf), where=loo_w > 0)
+    spread = _robust_spread((value - mean)[mine], (var_f + mean_var)[mine]) + resolution
+    return mean, mean_var, np.full(n, spread)
+
+
 def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor=0.0, anchor_var=np.inf,
                      shortest=0.0, local=False):
     """Prior of one quantity at the points `at` from its measured values at `mine` (at least
@@ -639,13 +669,7 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
     spread measured over all of it, robustly, is the uniform part's."""
     own_idx, tree, dist, nbr, usable, sample, design = search
     n = len(value)
-    own_values, own_var = value[mine], np.maximum(var[mine], _VAR_FLOOR)
-    centre = anchor if np.isfinite(anchor_var) else float(np.median(own_values))
-    resolution = float(np.median(own_var)) * np.sqrt(2.0 / mine.sum()) + _VAR_FLOOR
-    # Neighbours differ from the point by the material's spread, and so does the material's
-    # value: the local mean follows the measured field where it is dense.
-    total = _robust_spread(own_values - centre, own_var)
-    var_f = np.maximum(var, _VAR_FLOOR)
+    centre, total, resolution, var_f = _spread_terms(value, var, mine, anchor, anchor_var)
     mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
     mean[at], mean_var[at], nearest[at] = _smooth_means(
         value, var_f + total + resolution, nbr, dist, usable, centre, anchor_var + total + resolution)
@@ -803,22 +827,26 @@ class DiffusePrior:
     """Per point: prior `mean` and `var` of pd `(N, 3)` (var inf: no prior); `available`
     `(N,)` where a prior exists and the point's own pd does not contradict it; `conflict`
     `(N,)` the points whose own pd does; `spread` `(K, 3)` the median spread per material
-    and channel (variance; inf: too few points)."""
+    and channel (variance; inf: too few points); `neighbours` `(K,)` the mates each
+    material's means rest on (0: all of them, the material is uniform)."""
 
     mean: np.ndarray
     var: np.ndarray
     available: np.ndarray
     conflict: np.ndarray
     spread: np.ndarray
+    neighbours: np.ndarray
 
 
 def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) -> DiffusePrior:
     """Empirical-Bayes prior of every point's diffuse albedo, per material and channel, as
     `lobe_prior` builds it for a lobe from the points' own fits: the precision-weighted mean
-    of the nearest material-mates' pd (`neighbours` of them, the point left out), as wide as
-    the spread of the field about such means beyond their noise (`_field_dimension`). A
-    uniform material's prior is narrow and pulls each point's noisy pd to the material's; a
-    textured one's is wide and leaves it. A point whose own pd differs from its prior by more
+    of the nearest material-mates' pd (`neighbours` of them, the point left out, or a local
+    plane through them), as wide as the spread of the field about such means beyond their
+    noise (`_field_dimension`); or, where leave-one-out cross-validation cannot tell that
+    field from one value for the whole material (`_material_field`), the mean of all
+    material-mates. A uniform material's prior is narrow and pulls each point's noisy pd to
+    the material's; a textured one's is wide and leaves it. A point whose own pd differs from its prior by more
     than chance allows over all points (chi^2 with 3 degrees of freedom, family-wise
     `_CONFLICT_ALPHA`) is a detail the neighbours do not share: it gets no prior.
 
@@ -831,6 +859,7 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
     known = np.asarray(known, bool) & np.all(np.isfinite(pd) & np.isfinite(var_pd), axis=1)
     mean, var = np.zeros((n, 3)), np.full((n, 3), np.inf)
     spreads = np.full((k, 3), np.inf)
+    chosen = np.zeros(k, np.int64)
     for m in range(k):
         members = labels == m
         mine = known & members
@@ -838,9 +867,19 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
             continue
         at = np.flatnonzero(members)
         search = _field_search(positions, mine, at, neighbours, plane=True)
+        fields = {size: [] for size in (0, neighbours)}
         for c in range(3):
-            mu, mu_var, spread = _field_dimension(pd[:, c], var_pd[:, c], mine, at, search, positions, neighbours,
-                                                  local=True)
+            fields[neighbours].append(_field_dimension(pd[:, c], var_pd[:, c], mine, at, search, positions,
+                                                       neighbours, local=True))
+            fields[0].append(_material_field(pd[:, c], var_pd[:, c], mine, at))
+        # Leave-one-out cross-validation, as `local_lobes` chooses a lobe's neighbourhood: the
+        # whole material (the simpler model, the narrower prior) unless the neighbours predict
+        # the measured pd better by more than one standard error of the paired differences.
+        w = 1.0 / np.maximum(var_pd[mine], _VAR_FLOOR)
+        d = np.sum(w * ((pd[mine] - np.stack([f[0][mine] for f in fields[0]], 1)) ** 2
+                        - (pd[mine] - np.stack([f[0][mine] for f in fields[neighbours]], 1)) ** 2), axis=1)
+        chosen[m] = neighbours if d.sum() > np.std(d) * np.sqrt(len(d)) else 0
+        for c, (mu, mu_var, spread) in enumerate(fields[chosen[m]]):
             mean[at, c], var[at, c] = mu[at], np.maximum(mu_var[at] + spread[at], _VAR_FLOOR)
             spreads[m, c] = float(np.median(spread[at]))
     available = np.all(np.isfinite(var), axis=1)
@@ -850,7 +889,7 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
     conflict = tested & (chi > threshold)
     available &= ~conflict
     return DiffusePrior(np.where(available[:, None], mean, 0.0), np.where(available[:, None], var, np.inf),
-                        available, conflict, spreads)
+                        available, conflict, spreads, chosen)
 
 
 def combine_with_prior(value, std, where, mean, var) -> None:
