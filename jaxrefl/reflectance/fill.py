@@ -108,6 +108,9 @@ def window_fill(values, known, adjacency: sp.csr_matrix, window: int = 5, max_sw
     return FillResult(result, in_window, far)
 
 
+_LEAF_SIZE = 128
+
+
 def nearest_candidates(points, candidates, k: int) -> np.ndarray:
     """`(N, k')` int64: for every row of `points` `(N, 3)` the indices (into `points`)
     of its `k' = min(k, len(candidates))` nearest `candidates` (indices, Euclidean
@@ -117,7 +120,9 @@ def nearest_candidates(points, candidates, k: int) -> np.ndarray:
         raise ValueError("nearest_candidates: no candidate")
     pts = np.asarray(points, dtype=np.float64)
     kk = int(min(k, cand.size))
-    _, j = cKDTree(pts[cand]).query(pts, k=kk, workers=-1)
+    # Large leaves: a point far from every candidate (across a fold from a lit face) has a
+    # wide k-th neighbour sphere that grazes many small leaves' boxes; 128 halves the query.
+    _, j = cKDTree(pts[cand], leafsize=_LEAF_SIZE).query(pts, k=kk, workers=-1)
     return cand[np.asarray(j).reshape(len(pts), kk)]
 
 
