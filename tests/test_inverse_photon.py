@@ -194,16 +194,22 @@ def test_joint_fit_recovers_pd_and_lobe_and_its_information_is_the_gauss_newton_
 def test_lobe_prior_explains_the_images_better_than_the_fill(convex, convex_photon):
     """The shared prior's lobes (fitted jointly with pd through the forward model, the
     default) are a second candidate for the final lobes. On the vase the lobe fill from the
-    few points step (b) measures explains the images worse than the best iterate: without the
-    prior (`lobe_prior=False`) Method III keeps its best iterate and says so. The prior's
-    lobes explain them better than both: they are kept, most points `pooled` with finite std,
-    and the errors are no worse."""
+    few points step (b) measures explains the images worse than the best iterate, which is
+    the start (no interreflection to speak of): without the prior (`lobe_prior=False`)
+    Method III returns its start, Method I's estimate, whole (values, uncertainties,
+    statuses, materials) and says so. The prior's lobes explain the images better than
+    both: they are kept, most points `pooled` with finite std, and the errors are no worse."""
     from jaxrefl.status import Status
 
     fill = estimate_photon(convex, PhotonOptions(**CONVEX_OPTIONS, lobe_prior=False))
     assert "prior" not in fill.meta["lobe_stage"]["image_difference"]
-    assert any("kept the best iteration" in w for w in fill.meta["method_warnings"])
+    assert fill.meta["best_iteration"] == 0
+    assert [w for w in fill.meta["method_warnings"] if "returned Method I's estimate" in w]
     assert fill.meta["method_warnings"][0] in fill.meta["warnings"]
+    local = estimate_local(convex, PhotonOptions().local)
+    for name in ("pd", "ps", "roughness", "status", "std_pd", "std_ps", "std_roughness", "specular_identifiable",
+                 "material"):
+        np.testing.assert_array_equal(getattr(fill, name), getattr(local, name), err_msg=name)
     est = convex_photon
     stage = est.meta["lobe_stage"]
     assert stage["kept"] == "prior" and stage["image_difference"]["prior"] < stage["image_difference"]["fill"]

@@ -958,6 +958,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     observed_any = use.any(1)
     alpha = np.exp(rho)
     method_warnings = []
+    at_start = False  # the values kept are the start's (Method I's estimate)
 
     # The lobes: (1) the iterations' own lobes, the unmeasured ones filled from them; (2) with
     # the shared prior, every lobe's posterior through the interreflection model. pd is then
@@ -1006,10 +1007,12 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
             # The filled lobes explain the images worse than the best iterate did: the measured
             # points' lobes do not carry over to the others. Keep the best iterate, whose other
             # points hold Method I's lobes (step (b) moves only points with lobe evidence).
-            method_warnings.append(
-                f"Method III's lobe fill raised the image difference from {float(fin_best['cost']):.4g} to "
-                f"{float(fin['cost']):.4g}: kept the best iteration's values, the unmeasured lobes Method I's")
-            logger.warning(method_warnings[-1])
+            at_start = best_iteration == 0
+            if not at_start:
+                method_warnings.append(
+                    f"Method III's lobe fill raised the image difference from {float(fin_best['cost']):.4g} to "
+                    f"{float(fin['cost']):.4g}: kept the best iteration's values, the unmeasured lobes Method I's")
+                logger.warning(method_warnings[-1])
             fin = fin_best
             pd, ps, alpha = (np.array(x, np.float64) for x in best[0])
             alpha = np.exp(alpha)
@@ -1018,32 +1021,45 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         sd_ps = sd_rho = np.full(scan.n_points, np.inf)
         ps, alpha = np.zeros_like(ps), np.zeros_like(alpha)
         status[:] = UNRESOLVED
-    std_pd = _pd_std(fin, dof)
-    std_ps = np.where(known, sd_ps, np.inf)
-    std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
-    # pd, as Method I's, shares evidence with its material-mates (the prior's materials). Here
-    # each point's pd also lights the others: in a cavity of high albedo the prior's pulls,
-    # each within its point's noise, add up in the interreflected light. The prior stays only
-    # if the images allow it: the image difference may rise by at most one unit of the
-    # residual variance per pd value (what pulls within the noise cost).
-    if labels is not None:
-        kept = pd.copy(), std_pd.copy()
-        _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
-        before = float(fin["cost"])
-        theta_p = tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(np.clip(alpha, *ALPHA_RANGE))))
-        after = float(_final(replay.data, replay.static, index, fg, rows, theta_p)["cost"])
-        s2 = max(1.0, before / max(3.0 * float(use.sum()), 1.0))
-        allowed = before + 3.0 * float(observed_any.sum()) * s2
-        prior_meta["pd_prior_image_difference"] = {"without": before, "with": after, "allowed": allowed}
-        if not after <= allowed:
-            pd[:], std_pd[:] = kept
-            method_warnings.append(f"the pd prior raised Method III's image difference from {before:.4g} to "
-                                   f"{after:.4g} (allowed {allowed:.4g}): each point keeps its own pd")
-            logger.warning(method_warnings[-1])
-    # Unobserved points keep the pd the images were explained with (their start's, filled by
-    # Method I): their light reaches the observed points, and in a cavity of high albedo a
-    # window fill from the iterations' per-point pd would change the images it returns.
-    fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window, keep_values=True)
+    if at_start:
+        # No iteration explained the images better than the start (no interreflection to
+        # speak of: a convex object): Method I's estimate is the answer, with its own
+        # uncertainties, statuses and materials (pd already shares its material-mates').
+        method_warnings.append(
+            "no Method III iteration explained the images better than its start: returned Method I's "
+            f"estimate (image difference {float(fin_best['cost']):.4g}); the interreflection changes nothing "
+            "the data can see")
+        logger.warning(method_warnings[-1])
+        pd, ps, alpha, status = init.pd.copy(), init.ps.copy(), init.roughness.copy(), init.status.copy()
+        std_pd, std_ps, std_alpha = init.std_pd.copy(), init.std_ps.copy(), init.std_roughness.copy()
+        identifiable, labels, prior_meta = init.specular_identifiable.copy(), init.material, {}
+    else:
+        std_pd = _pd_std(fin, dof)
+        std_ps = np.where(known, sd_ps, np.inf)
+        std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
+        # pd, as Method I's, shares evidence with its material-mates (the prior's materials). Here
+        # each point's pd also lights the others: in a cavity of high albedo the prior's pulls,
+        # each within its point's noise, add up in the interreflected light. The prior stays only
+        # if the images allow it: the image difference may rise by at most one unit of the
+        # residual variance per pd value (what pulls within the noise cost).
+        if labels is not None:
+            kept = pd.copy(), std_pd.copy()
+            _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
+            before = float(fin["cost"])
+            theta_p = tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(np.clip(alpha, *ALPHA_RANGE))))
+            after = float(_final(replay.data, replay.static, index, fg, rows, theta_p)["cost"])
+            s2 = max(1.0, before / max(3.0 * float(use.sum()), 1.0))
+            allowed = before + 3.0 * float(observed_any.sum()) * s2
+            prior_meta["pd_prior_image_difference"] = {"without": before, "with": after, "allowed": allowed}
+            if not after <= allowed:
+                pd[:], std_pd[:] = kept
+                method_warnings.append(f"the pd prior raised Method III's image difference from {before:.4g} to "
+                                       f"{after:.4g} (allowed {allowed:.4g}): each point keeps its own pd")
+                logger.warning(method_warnings[-1])
+        # Unobserved points keep the pd the images were explained with (their start's, filled by
+        # Method I): their light reaches the observed points, and in a cavity of high albedo a
+        # window fill from the iterations' per-point pd would change the images it returns.
+        fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window, keep_values=True)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, alpha), (std_pd, std_ps, std_alpha))
     misfit = _misfit(scan, replay, index, fg, rows, (pd, ps, alpha), dt)
@@ -1067,7 +1083,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     }
     if misfit is not None:
         meta["misfit"] = misfit
-    est = Estimate(pd, ps, alpha, status, std_pd, std_ps, std_alpha, identifiable, observed_any, "ward", meta)
+    est = Estimate(pd, ps, alpha, status, std_pd, std_ps, std_alpha, identifiable, observed_any, "ward", meta,
+                   labels)
     if top:
         checks.estimate_warnings(est, logger)
     return est
