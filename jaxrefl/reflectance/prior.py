@@ -582,22 +582,26 @@ def _distance_levels(nearest, shortest=0.0):
 
 
 def _distance_spread(value, var, tree, own_idx, positions, sample, levels, neighbours, centre, anchor_var, total,
-                     nearest, resolution):
+                     nearest, resolution, found=None):
     """Spread `(N,)` of each point's value about its local mean as it grows with `nearest`
     `(N,)`, the distance to the closest measured lobe its mean rests on. At each of `levels`
     each measured point of `sample` is predicted from its `neighbours` nearest measured points
     no closer than that distance (`tree` holds `positions[own_idx]`), and the robust spread of
     the misses (beyond their noise) is the spread there; non-decreasing in distance,
     interpolated. (The search reaches as far as each level needs; the
-    sample is thinned so that it holds at most `_SPREAD_PAIRS` candidate pairs.)"""
+    sample is thinned so that it holds at most `_SPREAD_PAIRS` candidate pairs.) `found`: a
+    dict keeping each level's search for the next quantity measured at the same points."""
     centres, spreads = [], []
+    found = {} if found is None else found
     for level in levels:
-        reach = tree.query_ball_point(positions[sample], r=np.nextafter(level, 0.0), return_length=True)
-        kk = int(min(len(own_idx), np.max(reach) + neighbours + 1))
-        sub = sample if len(sample) * kk <= _SPREAD_PAIRS else \
-            sample[np.linspace(0, len(sample) - 1, max(_SPREAD_PAIRS // kk, 1)).astype(np.int64)]
-        dist, nbr = _neighbours(tree, own_idx, positions, sub, kk)
-        usable = _usable(sub, dist, nbr, neighbours, level)
+        if level not in found:
+            reach = tree.query_ball_point(positions[sample], r=np.nextafter(level, 0.0), return_length=True)
+            kk = int(min(len(own_idx), np.max(reach) + neighbours + 1))
+            sub = sample if len(sample) * kk <= _SPREAD_PAIRS else \
+                sample[np.linspace(0, len(sample) - 1, max(_SPREAD_PAIRS // kk, 1)).astype(np.int64)]
+            dist, nbr = _neighbours(tree, own_idx, positions, sub, kk)
+            found[level] = sub, dist, nbr, _usable(sub, dist, nbr, neighbours, level)
+        sub, dist, nbr, usable = found[level]
         mean, mean_var, used = _smooth_means(value, var + total, nbr, dist, usable, centre, anchor_var + total)
         ok = np.isfinite(used)
         if ok.sum() >= _MIN_SPREAD_POINTS:
@@ -615,14 +619,15 @@ def _field_search(positions, mine, at, neighbours, plane=False):
     """The neighbour search one measured field needs (`_field_dimension`): who each point
     `at` `(m,)` rests on depends on where the measured points `mine` `(N,)` are, not on their
     values, so one search serves every dimension. Returns `(own_idx, tree, dist, nbr, usable,
-    sample, design)`, `design` the local planes' (`_plane_design`) where `plane`, else None."""
+    sample, design, found)`, `design` the local planes' (`_plane_design`) where `plane`, else
+    None, `found` an empty dict for `_distance_spread`'s searches."""
     own_idx = np.flatnonzero(mine)
     tree = cKDTree(positions[own_idx])
     dist, nbr = _neighbours(tree, own_idx, positions, at, neighbours + 1)
     usable = _usable(at, dist, nbr, neighbours)
     sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
         own_idx[np.linspace(0, len(own_idx) - 1, _SPREAD_SAMPLE).astype(np.int64)]
-    return own_idx, tree, dist, nbr, usable, sample, (_plane_design(positions, nbr, at) if plane else None)
+    return own_idx, tree, dist, nbr, usable, sample, (_plane_design(positions, nbr, at) if plane else None), {}
 
 
 def _spread_terms(value, var, mine, anchor=0.0, anchor_var=np.inf):
@@ -667,7 +672,7 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
     is never below the one its own neighbours show (the mean of their squared misses beyond
     their variance): a material may be uniform in one part and textured in another, and a
     spread measured over all of it, robustly, is the uniform part's."""
-    own_idx, tree, dist, nbr, usable, sample, design = search
+    own_idx, tree, dist, nbr, usable, sample, design, found = search
     n = len(value)
     centre, total, resolution, var_f = _spread_terms(value, var, mine, anchor, anchor_var)
     mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
@@ -689,7 +694,7 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
     else:
         spread = _distance_spread(value, var_f, tree, own_idx, positions, sample,
                                   _distance_levels(nearest[at], shortest), neighbours, centre, anchor_var, total,
-                                  nearest, resolution)
+                                  nearest, resolution, found)
     if local:
         excess = np.where(mine, (value - mean) ** 2 - var_f - mean_var, 0.0)
         count = usable.sum(1)
