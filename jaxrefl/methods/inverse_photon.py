@@ -774,9 +774,10 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
     k_pad = -(-k // 8) * 8  # one compilation for every K up to 8
 
     def material_sums(rho, labels_, k_, weights):
-        rho = np.pad(np.asarray(rho, np.float64), [(0, 0), (0, k_pad - k_)])
+        g = len(rho)  # the grid, its refinement, the optimum: padded to one compilation
+        rho = np.pad(np.asarray(rho, np.float64), [(0, max(_GRID - g, 0)), (0, k_pad - k_)], mode="edge")
         out = _material_reduced(coef, jnp.asarray(rho, dt), jnp.asarray(labels_), jnp.asarray(weights, dt), k_pad)
-        return np.asarray(out, np.float64)[..., :k_]
+        return np.asarray(out, np.float64)[:g, :, :k_]
 
     grid = np.log(np.geomspace(*ALPHA_RANGE, _GRID))
     lobes = prior_mod.material_lobes(material_sums, labels, k, inv_s2, grid,
