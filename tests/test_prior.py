@@ -169,6 +169,27 @@ def test_diffuse_prior_shrinks_noise_without_bias(field):
     assert abs(np.median((post - true)[top, 0] / true[top, 0])) < 0.5 * np.median(sd[top, 0] / true[top, 0])
 
 
+@pytest.mark.parametrize("field", ["uniform", "gradient"])
+def test_diffuse_prior_ignores_the_values_of_points_without_a_fit(field):
+    """Points with no own fit (`known` False) may hold anything, NaN and inf included (a
+    method's unobserved points before their fill): the prior of every point is finite and
+    the same as with those values zeroed, whichever neighbourhood cross-validation picks."""
+    pos, rng = _sphere(800, 5)
+    true = np.full((800, 3), 0.5) if field == "uniform" else 0.5 + 0.3 * pos[:, :1] * np.array([[1.0, 0.5, -0.5]])
+    sd = 0.02 * true
+    own = true + sd * rng.standard_normal(true.shape)
+    known = rng.random(800) > 0.1
+    bad, zero = own.copy(), own.copy()
+    bad[~known] = np.where(rng.random(((~known).sum(), 3)) < 0.5, np.nan, np.inf)
+    zero[~known] = 0.0
+    d_bad = prior.diffuse_prior(bad, sd**2, known, np.zeros(800, int), pos)
+    d_zero = prior.diffuse_prior(zero, sd**2, known, np.zeros(800, int), pos)
+    assert list(d_bad.neighbours) == [0 if field == "uniform" else 16]
+    assert np.all(np.isfinite(d_bad.mean)) and np.all(np.isfinite(d_bad.var[d_bad.available]))
+    np.testing.assert_array_equal(d_bad.mean, d_zero.mean)
+    np.testing.assert_array_equal(d_bad.var, d_zero.var)
+
+
 def test_diffuse_prior_leaves_a_detail_its_neighbours_do_not_share():
     """A few points of a uniform material carry a printed dot (pd 0.2 instead of 0.6): their
     own pd contradicts the prior (or the spread their neighbours show widens it), so they

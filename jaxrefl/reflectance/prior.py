@@ -651,9 +651,10 @@ def _material_field(value, var, mine, at):
     n = len(value)
     _, total, resolution, var_f = _spread_terms(value, var, mine)
     w = np.where(mine, 1.0 / (var_f + total + resolution), 0.0)
+    x = np.where(mine, value, 0.0)  # a point without a fit may hold anything, NaN included
     loo_w = w.sum() - w[at]
     mean, mean_var = np.zeros(n), np.full(n, np.inf)
-    mean[at] = np.divide(np.sum(w * value) - w[at] * value[at], loo_w, out=np.zeros(len(at)), where=loo_w > 0)
+    mean[at] = np.divide(np.sum(w * x) - w[at] * x[at], loo_w, out=np.zeros(len(at)), where=loo_w > 0)
     mean_var[at] = np.divide(1.0, loo_w, out=np.full(len(at), np.inf), where=loo_w > 0)
     spread = _robust_spread((value - mean)[mine], (var_f + mean_var)[mine]) + resolution
     return mean, mean_var, np.full(n, spread)
