@@ -456,8 +456,7 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
         if not smaller or not rows.any():
             continue
         best = min(smaller, key=lambda z: cv[z][m])
-        d = cv_rows[0][rows] - cv_rows[best][rows]
-        chosen[m] = 0 if d.sum() <= np.std(d) * np.sqrt(rows.sum()) else best
+        chosen[m] = best if _beats_by_one_se(cv_rows[0][rows] - cv_rows[best][rows]) else 0
     pick = chosen[labels]
     out = [np.zeros(n) for _ in range(4)] + [np.zeros(n, bool), np.zeros(n)]
     for size in np.unique(pick):
@@ -465,6 +464,14 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
         for o, v in zip(out, fit_size(int(size), at)):
             o[at] = v
     return LocalLobes(*out, chosen, cv)
+
+
+def _beats_by_one_se(gain) -> bool:
+    """Whether a richer model's paired per-row gains `(n,)` over the simpler one (positive: it
+    predicts that row better) sum to more than one standard error of their sum: otherwise the
+    simpler model is kept (the one-standard-error rule: Breiman et al. 1984, Hastie et al.
+    2009 sec. 7.10)."""
+    return not gain.sum() <= np.std(gain) * np.sqrt(len(gain))
 
 
 @dataclass(frozen=True)
@@ -642,14 +649,14 @@ def _spread_terms(value, var, mine, anchor=0.0, anchor_var=np.inf):
     return centre, _robust_spread(own_values - centre, own_var), resolution, np.maximum(var, _VAR_FLOOR)
 
 
-def _material_field(value, var, mine, at):
+def _material_field(value, mine, at, terms):
     """The prior of one quantity when a material is uniform: at the points `at` `(m,)` the
     precision-weighted mean of all its measured values `mine` `(N,)` but the point's own
     (leave-one-out), and the spread of the measured values about those means beyond their
-    noise, never below the resolution (`_spread_terms`). Returns `(mean, var_of_mean,
-    spread)`, each `(N,)` (set at `at`)."""
+    noise, never below the resolution (`terms` from `_spread_terms`, no anchor). Returns
+    `(mean, var_of_mean, spread)`, each `(N,)` (set at `at`)."""
     n = len(value)
-    _, total, resolution, var_f = _spread_terms(value, var, mine)
+    _, total, resolution, var_f = terms
     w = np.where(mine, 1.0 / (var_f + total + resolution), 0.0)
     x = np.where(mine, value, 0.0)  # a point without a fit may hold anything, NaN included
     loo_w = w.sum() - w[at]
@@ -661,10 +668,11 @@ def _material_field(value, var, mine, at):
 
 
 def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor=0.0, anchor_var=np.inf,
-                     shortest=0.0, local=False):
+                     shortest=0.0, local=False, terms=None):
     """Prior of one quantity at the points `at` from its measured values at `mine` (at least
     `_MIN_SPREAD_POINTS`): `value`, `var` `(N,)`; `search` from `_field_search`; the
-    material's `anchor` value (variance `anchor_var`, inf: none) one more observation.
+    material's `anchor` value (variance `anchor_var`, inf: none) one more observation;
+    `terms` `_spread_terms` of these arguments where the caller has them already.
     Returns `(mean, var_of_mean, spread)`, each `(N,)` (set at `at`): the leave-one-out
     precision-weighted mean of the nearest measured values and the spread of the field about
     it at that distance (`_distance_spread`), never below the resolution of a variance from
@@ -675,7 +683,7 @@ def _field_dimension(value, var, mine, at, search, positions, neighbours, anchor
     spread measured over all of it, robustly, is the uniform part's."""
     own_idx, tree, dist, nbr, usable, sample, design, found = search
     n = len(value)
-    centre, total, resolution, var_f = _spread_terms(value, var, mine, anchor, anchor_var)
+    centre, total, resolution, var_f = _spread_terms(value, var, mine, anchor, anchor_var) if terms is None else terms
     mean, mean_var, nearest = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
     mean[at], mean_var[at], nearest[at] = _smooth_means(
         value, var_f + total + resolution, nbr, dist, usable, centre, anchor_var + total + resolution)
@@ -875,16 +883,17 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
         search = _field_search(positions, mine, at, neighbours, plane=True)
         fields = {size: [] for size in (0, neighbours)}
         for c in range(3):
+            terms = _spread_terms(pd[:, c], var_pd[:, c], mine)
             fields[neighbours].append(_field_dimension(pd[:, c], var_pd[:, c], mine, at, search, positions,
-                                                       neighbours, local=True))
-            fields[0].append(_material_field(pd[:, c], var_pd[:, c], mine, at))
+                                                       neighbours, local=True, terms=terms))
+            fields[0].append(_material_field(pd[:, c], mine, at, terms))
         # Leave-one-out cross-validation, as `local_lobes` chooses a lobe's neighbourhood: the
         # whole material (the simpler model, the narrower prior) unless the neighbours predict
         # the measured pd better by more than one standard error of the paired differences.
         w = 1.0 / np.maximum(var_pd[mine], _VAR_FLOOR)
         d = np.sum(w * ((pd[mine] - np.stack([f[0][mine] for f in fields[0]], 1)) ** 2
                         - (pd[mine] - np.stack([f[0][mine] for f in fields[neighbours]], 1)) ** 2), axis=1)
-        chosen[m] = neighbours if d.sum() > np.std(d) * np.sqrt(len(d)) else 0
+        chosen[m] = neighbours if _beats_by_one_se(d) else 0
         for c, (mu, mu_var, spread) in enumerate(fields[chosen[m]]):
             mean[at, c], var[at, c] = mu[at], np.maximum(mu_var[at] + spread[at], _VAR_FLOOR)
             spreads[m, c] = float(np.median(spread[at]))
