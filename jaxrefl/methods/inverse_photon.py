@@ -669,6 +669,13 @@ def _final(data, static, index, fg, rows, theta):
                 d=d, q=q)
 
 
+def _image_cost(replay, index, fg, rows, pd, ps, alpha, dtype) -> float:
+    """The image difference (Eq. 14, noise-weighted) at the Ward values `pd` `(N, 3)`, `ps`,
+    `alpha` `(N,)` through the photon replay and final gather (`_final`)."""
+    theta = (jnp.asarray(pd, dtype), jnp.asarray(ps, dtype), jnp.asarray(np.log(np.clip(alpha, *ALPHA_RANGE)), dtype))
+    return float(_final(replay.data, replay.static, index, fg, rows, theta)["cost"])
+
+
 def _misfit(scan, replay, index, fg, rows, estimate, dtype):
     """Where the scan carries Ward ground truth (`true_pd`, `true_ps`, `true_alpha`): the
     image difference (Eq. 14, noise-weighted) at the estimate and at the truth through the
@@ -678,12 +685,8 @@ def _misfit(scan, replay, index, fg, rows, estimate, dtype):
     if scan.true_pd is None or scan.true_ps is None or scan.true_alpha is None:
         return None
 
-    def cost(pd, ps, alpha):
-        theta = (jnp.asarray(pd, dtype), jnp.asarray(ps, dtype),
-                 jnp.asarray(np.log(np.clip(alpha, *ALPHA_RANGE)), dtype))
-        return float(_final(replay.data, replay.static, index, fg, rows, theta)["cost"])
-
-    at_estimate, at_truth = cost(*estimate), cost(scan.true_pd, scan.true_ps, scan.true_alpha)
+    at_estimate = _image_cost(replay, index, fg, rows, *estimate, dtype)
+    at_truth = _image_cost(replay, index, fg, rows, scan.true_pd, scan.true_ps, scan.true_alpha, dtype)
     ratio = at_estimate / at_truth if at_truth > 0 else None
     return {"estimate": at_estimate, "truth": at_truth, "ratio": ratio}
 
@@ -1047,8 +1050,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
             kept = pd.copy(), std_pd.copy()
             _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
             before = float(fin["cost"])
-            theta_p = tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(np.clip(alpha, *ALPHA_RANGE))))
-            after = float(_final(replay.data, replay.static, index, fg, rows, theta_p)["cost"])
+            after = _image_cost(replay, index, fg, rows, pd, ps, alpha, dt)
             s2 = max(1.0, before / max(3.0 * float(use.sum()), 1.0))
             allowed = before + 3.0 * float(observed_any.sum()) * s2
             prior_meta["pd_prior_image_difference"] = {"without": before, "with": after, "allowed": allowed}
