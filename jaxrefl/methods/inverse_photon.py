@@ -1026,13 +1026,13 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         ps, alpha = np.zeros_like(ps), np.zeros_like(alpha)
         status[:] = UNRESOLVED
     if at_start:
-        # No iteration explained the images better than the start (no interreflection to
-        # speak of: a convex object): Method I's estimate is the answer, with its own
-        # uncertainties, statuses and materials (pd already shares its material-mates').
+        # No iteration explained the images better than the start (as on a convex object,
+        # where the interreflection adds nothing the data see): Method I's estimate is the
+        # answer, with its own uncertainties, statuses and materials (pd already shares its
+        # material-mates').
         method_warnings.append(
             "no Method III iteration explained the images better than its start: returned Method I's "
-            f"estimate (image difference {float(fin_best['cost']):.4g}); the interreflection changes nothing "
-            "the data can see")
+            f"estimate (image difference {float(fin_best['cost']):.4g})")
         logger.warning(method_warnings[-1])
         pd, ps, alpha, status = init.pd.copy(), init.ps.copy(), init.roughness.copy(), init.status.copy()
         std_pd, std_ps, std_alpha = init.std_pd.copy(), init.std_ps.copy(), init.std_roughness.copy()
