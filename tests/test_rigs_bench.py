@@ -75,3 +75,20 @@ def test_failing_variant_is_recorded(monkeypatch):
     assert "broken estimator" in v["gates"]["error"]
     assert "error" not in v["prior"] and _finite_number(v["prior"]["holdout"]["rel_rms"])
     assert any(s["check"] == "held-out rel-RMS <= 1.5x truth floor" for s in rigs.must_shows([rec]))
+
+
+def test_material_visible_and_the_scope_of_the_lobe_targets():
+    """A material counts where any of its points shows its lobe; the ps and roughness checks
+    are taken over those materials' points, pd over all."""
+    labels = np.array([0, 0, 1, 1, 2])
+    visible = np.array([False, True, False, False, False])
+    np.testing.assert_array_equal(rigs.material_visible(labels, visible), [True, True, False, False, False])
+    errors = {"pd": {"all": 0.002, "observed": 0.002},
+              "ps": {"all": 0.5, "observed": 0.5, "lobe_seen": 0.01},
+              "roughness": {"all": 0.5, "observed": 0.5, "lobe_seen": 0.2}}
+    rec = {"cell": "c", "brdf": "ward", "models": {"ward": {"matched": True, "variants": {
+        "prior": {"errors": errors, "ratio_truth_floor": 1.0}}}}}
+    checks = {c["check"].split(" error")[0]: c for c in rigs.must_shows([rec])}
+    assert checks["median pd"]["met"] and checks["median pd"]["value"] == "0.20%"
+    assert checks["median ps"]["met"] and "all points: 50.00%" in checks["median ps"]["context"]
+    assert not checks["median roughness"]["met"] and checks["median roughness"]["value"] == "20.00%"
