@@ -1010,7 +1010,8 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     meta["points_in_conflict_with_prior"] = int(conflict.sum())
     return {"params": params, "sd": sd, "measured": measured & observed_any, "pooled": pooled & observed_any,
             "conflict": conflict & ~measured, "labels": materials.labels,
-            "prior_lobe": np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan)}, meta
+            "prior_lobe": np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan),
+            "material_lobe": np.c_[lobes.ps, np.exp(lobes.rho)][materials.labels]}, meta
 
 
 def _bound_lobes(model, ps, rough) -> int:
@@ -1025,7 +1026,8 @@ def _bound_lobes(model, ps, rough) -> int:
 def _fill_from_prior(scan, fit, observed_any, dark, adjacency, options, values, stds, status):
     """In place on `values` (pd, ps, roughness), `stds` and `status`: the posterior modes
     (`_posterior_lobes`) where the point's own samples or its prior pin the lobe
-    (`measured` / `pooled`); elsewhere the lobe of the nearest such points, `unresolved`
+    (`measured` / `pooled`); elsewhere its material's prior lobe, or where the material has
+    none its joint fit if that shows a lobe, else the lobe of the nearest such points, `unresolved`
     (or, where the point's samples reject its prior, its own fit, `unresolved`).
     Returns `(measured, need_spec, material labels, meta)`."""
     pd, ps, rough = values
@@ -1048,6 +1050,14 @@ def _fill_from_prior(scan, fit, observed_any, dark, adjacency, options, values, 
     # observed points), not a mean of lobes across a material edge; still `unresolved`.
     blind = need_spec & np.isfinite(post["prior_lobe"][:, 0])
     ps[blind], rough[blind] = post["prior_lobe"][blind, 0], post["prior_lobe"][blind, 1]
+    # In a material with no prior (its joint lobe is not identifiable, none of its points has
+    # its own) whose samples still show a lobe (joint fit ps > 0, seen on its flank), that
+    # fit is the best guess: a lobe copied from the nearest known points would be another
+    # material's. Where the joint fit finds no lobe at all (ps 0: the lobe is not in the
+    # samples, its roughness says nothing), the copy stays. Still `unresolved`, std infinite.
+    own = need_spec & ~blind & known.any() & np.all(np.isfinite(post["material_lobe"]), axis=1) \
+        & (post["material_lobe"][:, 0] > 0) & (post["material_lobe"][:, 1] > 0)
+    ps[own], rough[own] = post["material_lobe"][own, 0], post["material_lobe"][own, 1]
     # Points whose data reject their prior keep their own fit: loose, but not contradicted.
     mine = post["conflict"]
     pd[mine], ps[mine], rough[mine] = params[mine, :3], params[mine, 3], np.exp(params[mine, 4])
