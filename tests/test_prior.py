@@ -345,3 +345,6 @@ def test_a_material_without_a_prior_reports_its_own_joint_fit():
     truth = info["materials"][1]
     assert _rel(np.median(est.ps[broad]), truth["ps"]) < 0.15
     assert _rel(np.median(est.roughness[broad]), truth["roughness"]) < 0.10
+    # `material_fill=False` (Method III's start): the nearest measured lobes instead, another material's.
+    copied = estimate_local(fit_scan, LocalOptions(model="torrance-sparrow", material_fill=False))
+    assert _rel(np.median(copied.roughness[broad]), truth["roughness"]) > 0.5

@@ -114,6 +114,10 @@ class LocalOptions:
     pool_neighbours: int = 12
     pool_tau: float = 0.05
     thresholds: Thresholds = field(default_factory=Thresholds)
+    #: With the prior: `unresolved` points of a material with no prior report its joint fit
+    #: where that shows a lobe (False: the nearest measured lobes, as Method III starts from:
+    #: under interreflection a material's direct-light joint fit may be interreflected light).
+    material_fill: bool = True
 
     def __post_init__(self):
         if self.model not in brdf.MODELS:
@@ -1055,9 +1059,10 @@ def _fill_from_prior(scan, fit, observed_any, dark, adjacency, options, values, 
     # fit is the best guess: a lobe copied from the nearest known points would be another
     # material's. Where the joint fit finds no lobe at all (ps 0: the lobe is not in the
     # samples, its roughness says nothing), the copy stays. Still `unresolved`, std infinite.
-    own = need_spec & ~blind & known.any() & np.all(np.isfinite(post["material_lobe"]), axis=1) \
-        & (post["material_lobe"][:, 0] > 0) & (post["material_lobe"][:, 1] > 0)
-    ps[own], rough[own] = post["material_lobe"][own, 0], post["material_lobe"][own, 1]
+    lobe = post["material_lobe"]
+    own = need_spec & ~blind & known.any() & options.material_fill & np.all(np.isfinite(lobe), axis=1) \
+        & (lobe[:, 0] > 0) & (lobe[:, 1] > 0)
+    ps[own], rough[own] = lobe[own, 0], lobe[own, 1]
     # Points whose data reject their prior keep their own fit: loose, but not contradicted.
     mine = post["conflict"]
     pd[mine], ps[mine], rough[mine] = params[mine, :3], params[mine, 3], np.exp(params[mine, 4])
