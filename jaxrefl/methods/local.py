@@ -115,7 +115,7 @@ class LocalOptions:
     pool_tau: float = 0.05
     thresholds: Thresholds = field(default_factory=Thresholds)
     #: With the prior: `unresolved` points of a material with no prior report its joint fit
-    #: where that shows a lobe (False: the nearest measured lobes, as Method III starts from:
+    #: where that shows a lobe (False: the nearest measured lobes, as Methods II and III use:
     #: under interreflection a material's direct-light joint fit may be interreflected light).
     material_fill: bool = True
 

@@ -439,7 +439,10 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
     region = np.ones(scan.n_points, bool) if points is None else np.asarray(points, bool)
     if region.shape != (scan.n_points,) or not region.any():
         raise ValueError(f"points: must be ({scan.n_points},) bool with at least one True")
-    local_options = dataclasses.replace(options.local, paper=options.paper)
+    # Unresolved lobes from the nearest measured ones (`LocalOptions.material_fill`): what is left
+    # after the diffuse interreflection still holds the specular one, which a material's joint
+    # fit without a measured lobe may take for its own.
+    local_options = dataclasses.replace(options.local, paper=options.paper, material_fill=False)
     timings = {}
     t0 = time.perf_counter()
     caster = caster or RayCaster(scan.vertices, scan.faces)
