@@ -1012,10 +1012,19 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
         entry["neighbours"] = int(local.neighbours[m])  # 0: the whole material
         entry["spread_local_ps"], entry["spread_local_ln_roughness"] = (float(v) for v in spread[m])
     meta["points_in_conflict_with_prior"] = int(conflict.sum())
-    return {"params": params, "sd": sd, "measured": measured & observed_any, "pooled": pooled & observed_any,
-            "conflict": conflict & ~measured, "labels": materials.labels,
-            "prior_lobe": np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan),
-            "material_lobe": np.c_[lobes.ps, np.exp(lobes.rho)][materials.labels]}, meta
+    measured, pooled = measured & observed_any, pooled & observed_any
+    # The lobe an unresolved point reports: its material's prior lobe; in a material with no
+    # prior (joint lobe not identifiable, no point with its own) whose samples still show a
+    # lobe (joint fit ps > 0, seen on its flank), that joint fit, where a lobe copied from the
+    # nearest known points would be another material's (`material_fill`); NaN: the copy (a
+    # joint fit with ps 0 saw no lobe, and its roughness says nothing).
+    fallback = np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan)
+    if options.material_fill and (measured | pooled).any():
+        joint = np.c_[lobes.ps, np.exp(lobes.rho)][materials.labels]
+        shows = np.isnan(fallback[:, 0]) & np.all(np.isfinite(joint), axis=1) & (joint[:, 0] > 0) & (joint[:, 1] > 0)
+        fallback[shows] = joint[shows]
+    return {"params": params, "sd": sd, "measured": measured, "pooled": pooled,
+            "conflict": conflict & ~measured, "labels": materials.labels, "fallback_lobe": fallback}, meta
 
 
 def _bound_lobes(model, ps, rough) -> int:
@@ -1050,18 +1059,10 @@ def _fill_from_prior(scan, fit, observed_any, dark, adjacency, options, values, 
         ps[need_spec], rough[need_spec] = np.exp(filled.values[need_spec, 0]), np.exp(filled.values[need_spec, 1])
     else:  # no lobe anywhere: report none, roughness undefined (0)
         ps[need_spec], rough[need_spec] = 0.0, 0.0
-    # A point no fit light sees takes its material's prior lobe (the material of its nearest
-    # observed points), not a mean of lobes across a material edge; still `unresolved`.
-    blind = need_spec & np.isfinite(post["prior_lobe"][:, 0])
-    ps[blind], rough[blind] = post["prior_lobe"][blind, 0], post["prior_lobe"][blind, 1]
-    # In a material with no prior (its joint lobe is not identifiable, none of its points has
-    # its own) whose samples still show a lobe (joint fit ps > 0, seen on its flank), that
-    # fit is the best guess: a lobe copied from the nearest known points would be another
-    # material's. Where the joint fit finds no lobe at all (ps 0: the lobe is not in the
-    # samples, its roughness says nothing), the copy stays. Still `unresolved`, std infinite.
-    lobe = post["material_lobe"]
-    own = need_spec & ~blind & known.any() & options.material_fill & np.all(np.isfinite(lobe), axis=1) \
-        & (lobe[:, 0] > 0) & (lobe[:, 1] > 0)
+    # Where its material has a lobe of its own (`_posterior_lobes`' fallback), an unresolved
+    # point takes that, not a mean of lobes across a material edge; still `unresolved`.
+    lobe = post["fallback_lobe"]
+    own = need_spec & np.isfinite(lobe[:, 0])
     ps[own], rough[own] = lobe[own, 0], lobe[own, 1]
     # Points whose data reject their prior keep their own fit: loose, but not contradicted.
     mine = post["conflict"]

@@ -337,7 +337,8 @@ def estimate_warnings(est, log: logging.Logger | None = logger) -> list[str]:
         unresolved = float(np.mean(status == Status.UNRESOLVED))
         if unresolved > _LOW_COVERAGE:
             coverage.append(f"{unresolved:.0%} of the observed points are unresolved: their ps and roughness are "
-                            "not determined by the data (their material's loose joint fit, copied from neighbours, or 0)")
+                            "not determined by the data (their material's loose joint fit, copied from neighbours, "
+                            "or 0)")
         elif known < _LOW_COVERAGE:
             coverage.append(f"lobes measured or pooled at only {known:.0%} of the observed points: the rest are "
                             "interpolated or unresolved")
