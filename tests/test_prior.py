@@ -267,10 +267,11 @@ def test_estimates_keep_the_energy_bound_and_status_codes(sharp_estimate):
 
 def _quadratic_rows(ps_i, rho_i, a=1e4, c=1e4):
     """`row_sums` of rows whose chi^2 is `a (ps - ps_i)^2 + c (rho - rho_i)^2` (pd profiled)."""
-    def row_sums(rho):
+    def row_sums(rho, rows=None):
         rho = np.asarray(rho, float)
+        p, r = (ps_i, rho_i) if rows is None else (ps_i[rows], rho_i[rows])
         ones = np.ones_like(rho)
-        return np.stack([a * ps_i**2 * ones + c * (rho - rho_i) ** 2, a * ones, a * ps_i * ones], axis=1)
+        return np.stack([a * p**2 * ones + c * (rho - r) ** 2, a * ones, a * p * ones], axis=1)
     return row_sums
 
 

@@ -74,6 +74,7 @@ from functools import lru_cache, partial
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import sparse
 
 from ..geometry.raycast import RayCaster
 from ..geometry.rig import observation_geometry
@@ -717,11 +718,24 @@ class ChunkedRows:
                  for p, lab, w in zip(self.preps, self._split(labels), self._split(weights, fill=0.0))]
         return np.sum([np.asarray(x, np.float64) for x in parts], axis=0)[..., :k]
 
-    def row_sums(self, rho):
+    def row_sums(self, rho, rows=None):
         """`_reduced` per row: `rho` `(G, N)` ln roughness per grid value and row -> `(G, 3, N)`
-        (float64) coefficients `(c0, a, b)` of each row's squared residual, pd profiled out."""
+        (float64) coefficients `(c0, a, b)` of each row's squared residual, pd profiled out.
+        With `rows` `(m,)` indices: those rows only, `rho` `(G, m)` -> `(G, 3, m)`."""
+        if rows is not None:
+            return self.subset(rows).row_sums(rho)
         parts = [_reduced(p, jnp.asarray(r), model=self.model) for p, r in zip(self.preps, self._split(rho))]
         return np.concatenate([np.asarray(x, np.float64) for x in parts], axis=-1)[..., :self.n_rows]
+
+    def subset(self, rows) -> "ChunkedRows":
+        """The rows `rows` `(m,)` (indices, m >= 1) alone, in chunks of the same size (one
+        compilation serves both)."""
+        rows = np.asarray(rows, np.int64)
+        idx = jnp.asarray(np.r_[rows, np.full(_bucket(len(rows), self.chunk) - len(rows), rows[-1])])
+        gathered = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=-1)[..., idx], *self.preps)
+        preps = [jax.tree_util.tree_map(lambda a, i=i: a[..., i * self.chunk:(i + 1) * self.chunk], gathered)
+                 for i in range(len(idx) // self.chunk)]
+        return ChunkedRows(preps, self.chunk, len(rows), self.model)
 
     def map_fit(self, prior: dict, rho_own, steps: int) -> dict:
         """Posterior modes (`_map_polish`); `prior` of `(N,)` arrays; returns `params` `(N, 5)`,
@@ -964,8 +978,15 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     materials = prior_mod.fit_materials(x, v, scan.vertices, k_max=options.materials)
     chunks = fit["chunks"]
     peak = fit["spec_samples"] * observed_any
-    lobes = prior_mod.material_lobes(chunks.material_sums, materials.labels, materials.k, inv_s2,
-                                     np.log(brdf.ROUGHNESS_GRID), min_snr=options.min_snr, peak_samples=peak)
+    # Every row's chi^2 coefficients on the roughness grid, summed per material for the joint
+    # lobes and per neighbourhood for the local ones.
+    grid = np.log(brdf.ROUGHNESS_GRID)
+    grid_rows = chunks.row_sums(np.broadcast_to(grid[:, None], (len(grid), len(inv_s2))))
+    member = sparse.csr_matrix((inv_s2, (np.arange(len(inv_s2)), materials.labels)),
+                               shape=(len(inv_s2), materials.k))
+    grid_materials = np.asarray(grid_rows.reshape(-1, len(inv_s2)) @ member).reshape(len(grid), 3, materials.k)
+    lobes = prior_mod.material_lobes(chunks.material_sums, materials.labels, materials.k, inv_s2, grid,
+                                     min_snr=options.min_snr, peak_samples=peak, grid_sums=grid_materials)
     # Own lobes count only in a material whose lobe some sample saw near its peak.
     near_peak = np.bincount(materials.labels, weights=peak.astype(np.float64), minlength=materials.k)
     seen = near_peak >= 2
@@ -975,10 +996,10 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     s2_safe = np.where(np.isfinite(s2) & (s2 > 0), s2, 1.0)
     # Where the lobe varies within a material, each point's prior is its neighbourhood's lobe
     # (cross-validated size), as wide as the spread that best explains the points' own data.
-    local = prior_mod.local_lobes(chunks.row_sums, materials.labels, materials.k, scan.vertices, inv_s2,
-                                  np.log(brdf.ROUGHNESS_GRID), ps_bound=partial(brdf.ps_bound, options.model),
-                                  min_snr=options.min_snr, peak_samples=peak,
-                                  max_neighbours=4 * options.prior_neighbours)
+    local = prior_mod.local_lobes(chunks.row_sums, materials.labels, materials.k, scan.vertices, inv_s2, grid,
+                                  ps_bound=partial(brdf.ps_bound, options.model), min_snr=options.min_snr,
+                                  peak_samples=peak, max_neighbours=4 * options.prior_neighbours,
+                                  grid_sums=grid_rows)
     spread = _local_spread(chunks, local, materials, s2_safe, rho_own, observed_any, options.steps)
     prior = prior_mod.lobe_prior(fit["ps"], fit["std_ps"] ** 2, rho_own, fit["std_ln_roughness"] ** 2, own,
                                  materials.labels, lobes, scan.vertices, neighbours=options.prior_neighbours,

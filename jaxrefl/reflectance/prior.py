@@ -250,7 +250,7 @@ def _profile(c, a, b):
 
 
 def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 3.0,
-                   peak_samples=None) -> MaterialLobes:
+                   peak_samples=None, grid_sums=None) -> MaterialLobes:
     """Joint fit of one lobe per material over all its points' samples.
 
     **Arguments:** `material_sums(rho, labels, k, weights)` with `rho` `(G, k)` ln roughness
@@ -262,14 +262,17 @@ def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 
     `peak_samples` `(N,)` int: each row's samples near a specular peak (`classify.T_SPEC`).
     A material whose rows hold fewer than two is not identifiable, whatever its fit: a lobe
     no sample saw near its peak is a smooth trend over its flank, which light the model
-    leaves out (interreflection) imitates.
+    leaves out (interreflection) imitates. `grid_sums` `(G, 3, k)`: `material_sums` at
+    `rho_grid` where the caller has them.
 
     **Returns:** `MaterialLobes`. The best grid value per material is refined on a finer
     grid around it and by a parabola, whose curvature gives `sd_rho`; `sd_ps` from the
     chi^2 curvature in ps at that roughness.
     """
     grid = np.asarray(rho_grid, np.float64)
-    c, a, b = np.moveaxis(material_sums(np.broadcast_to(grid[:, None], (len(grid), k)), labels, k, inv_s2), 1, 0)
+    if grid_sums is None:
+        grid_sums = material_sums(np.broadcast_to(grid[:, None], (len(grid), k)), labels, k, inv_s2)
+    c, a, b = np.moveaxis(np.asarray(grid_sums, np.float64), 1, 0)
     chi2, _ = _profile(c, a, b)
     best = np.argmin(np.where(np.isfinite(chi2), chi2, np.inf), axis=0)  # (K,)
     step = float(np.mean(np.diff(grid)))
@@ -303,7 +306,8 @@ class LocalLobes:
     (ln roughness) of the joint fit to the samples of its nearest observed material-mates
     (none of its own), their variances `var_ps`, `var_rho` from the fit's curvature, and
     `identifiable` (as a material's lobe: `material_lobes`), `radius` the distance to the
-    farthest neighbour it rests on (inf: the whole material). Per material `(K,)`:
+    farthest neighbour it rests on; in a material taken whole (`neighbours` 0) the material's
+    joint lobe, its own samples included, and `radius` inf. Per material `(K,)`:
     `neighbours`, how many neighbours cross-validation chose (0: the whole material, a lobe
     that does not vary within the material), and `cv` `{neighbours: (K,) summed
     chi^2}` of every candidate over the rows it was cross-validated on."""
@@ -352,40 +356,44 @@ def _grid_fit(sums, grid, bound):
     return ps, grid[g] + shift, var_ps, var_rho
 
 
-def _nearest_mates(labels, observed, positions, k, rows_of=None):
-    """Sparse `(N, N)` 0/1 matrix: row `i` marks the `k` nearest observed points of `i`'s
-    material, `i` itself left out (only the rows `rows_of` `(N,)` bool, default all); and
-    `(N,)` the distance to the farthest of them."""
-    n = len(labels)
-    rows, cols = [], []
-    radius = np.full(n, np.inf)
-    for m in np.unique(labels):
+def _nearest_mates(labels, observed, positions, k, at):
+    """The `k` nearest observed points of each point `at` `(m,)` (indices) in its own
+    material, nearest first, the point itself among them where observed: distances and
+    indices `(m, k)` (inf and -1 past a material's observed points)."""
+    dist, nbr = np.full((len(at), k), np.inf), np.full((len(at), k), -1)
+    for m in np.unique(labels[at]):
         mates = np.flatnonzero((labels == m) & observed)
-        at = np.flatnonzero((labels == m) & (True if rows_of is None else rows_of))
-        if len(mates) < 2 or len(at) == 0:
+        rows = np.flatnonzero(labels[at] == m)
+        if len(mates) < 2:
             continue
-        dist, nbr = _neighbours(cKDTree(positions[mates]), mates, positions, at, k + 1)
-        use = _usable(at, dist, nbr, k)
-        rows.append(np.broadcast_to(at[:, None], nbr.shape)[use])
-        cols.append(nbr[use])
-        radius[at] = np.max(np.where(use, dist, 0.0), axis=1)
-    if not rows:
-        return sparse.csr_matrix((n, n)), radius
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), radius
+        d, j = _neighbours(cKDTree(positions[mates]), mates, positions, at[rows], k)
+        dist[rows, :d.shape[1]], nbr[rows, :d.shape[1]] = d, j
+    return dist, nbr
+
+
+def _mates_matrix(at, dist, nbr, size, n):
+    """Sparse `(m, N)` 0/1: row `r` marks the first `size` of `at[r]`'s neighbours `nbr` (from
+    `_nearest_mates`), itself left out; and `(m,)` the distance to the farthest of them
+    (inf: none)."""
+    use = _usable(at, dist, nbr, size) & (nbr >= 0)
+    rows = np.broadcast_to(np.arange(len(at))[:, None], nbr.shape)[use]
+    radius = np.where(use.any(1), np.max(np.where(use, dist, 0.0), axis=1), np.inf)
+    return sparse.csr_matrix((np.ones(len(rows)), (rows, nbr[use])), shape=(len(at), n)), radius
 
 
 def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None, min_snr: float = 3.0,
-                peak_samples=None, max_neighbours: int = 64) -> LocalLobes:
+                peak_samples=None, max_neighbours: int = 64, grid_sums=None) -> LocalLobes:
     """Each point's lobe from its neighbours' samples, the neighbourhood's size chosen by
     leave-one-out cross-validation.
 
-    **Arguments:** `row_sums(rho)` with `rho` `(G, N)` ln roughness per row returns `(G, 3, N)`:
-    each row's coefficients `(c0, a, b)` of its squared residual `c0 - 2 ps b + ps^2 a`, pd
-    profiled out (`local.ChunkedRows.row_sums`); `labels` `(N,)` materials, `k` their number;
+    **Arguments:** `row_sums(rho, rows=None)` with `rho` `(G, N)` ln roughness per row returns
+    `(G, 3, N)`: each row's coefficients `(c0, a, b)` of its squared residual
+    `c0 - 2 ps b + ps^2 a`, pd profiled out (`local.ChunkedRows.row_sums`; with `rows` `(m,)`
+    indices, `rho` `(G, m)`, those rows only); `labels` `(N,)` materials, `k` their number;
     `positions` `(N, 3)`; `inv_s2` `(N,)` 1 / residual variance scale (0 leaves a row out);
     `rho_grid` `(G,)` evenly spaced ln roughness; `ps_bound(roughness)` the largest physical ps
-    (`brdf.ps_bound`; None: unbounded); `min_snr`, `peak_samples` as `material_lobes`.
+    (`brdf.ps_bound`; None: unbounded); `min_snr`, `peak_samples` as `material_lobes`;
+    `grid_sums` `(G, 3, N)`: `row_sums` at `rho_grid` where the caller has them.
 
     A point's neighbourhood is its `n` nearest observed material-mates (`n` = 1, 2, 4, ...)
     or the whole material; its lobe is their joint maximum-likelihood fit, each row's pd
@@ -407,8 +415,10 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     observed = inv_s2 > 0
     peaks = np.zeros(n) if peak_samples is None else np.asarray(peak_samples, np.float64) * observed
     bound = np.full(len(grid), np.inf) if ps_bound is None else np.asarray(ps_bound(np.exp(grid)), np.float64)
-    per = np.asarray(row_sums(np.broadcast_to(grid[:, None], (len(grid), n))), np.float64) * inv_s2
-    flat = per.reshape(-1, n)
+    if grid_sums is None:
+        grid_sums = row_sums(np.broadcast_to(grid[:, None], (len(grid), n)))
+    per = np.asarray(grid_sums, np.float64) * inv_s2
+    flat_t = np.ascontiguousarray(per.reshape(-1, n).T)  # (N, G * 3): rows gathered by the sparse sums
     onehot = sparse.csr_matrix((np.ones(n), (np.arange(n), labels)), shape=(n, k))
     counts = np.bincount(labels, weights=observed.astype(np.float64), minlength=k)
     sizes = [0]  # the whole material, then 1, 2, 4, ... neighbours
@@ -420,33 +430,35 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     cv_idx = obs_idx if len(obs_idx) <= _CV_ROWS else \
         obs_idx[np.linspace(0, len(obs_idx) - 1, _CV_ROWS).astype(np.int64)]
 
-    material_flat = np.asarray(onehot.T @ flat.T).T  # (G * 3, K) every material's sums
+    material_flat = np.asarray(onehot.T @ flat_t)  # (K, G * 3) every material's sums
     material_peaks = np.bincount(labels, weights=peaks, minlength=k)
 
-    def fit_size(size, idx):
-        """The lobes `(ps, rho, var_ps, var_rho, ident, radius)` of rows `idx` for `size`."""
+    def fit_size(size, idx, mates=None):
+        """The lobes `(ps, rho, var_ps, var_rho, ident, radius)` of rows `idx` for `size`
+        (`mates`: `_nearest_mates` of `idx` for at least `size + 1` neighbours)."""
         if size == 0:  # the material's sums less the point's own
-            sums = material_flat[:, labels[idx]] - flat[:, idx]
+            sums = (material_flat[labels[idx]] - flat_t[idx]).T
             peak = material_peaks[labels[idx]] - peaks[idx]
             radius = np.full(len(idx), np.inf)
         else:
-            rows_of = np.zeros(n, bool)
-            rows_of[idx] = True
-            w, radius = _nearest_mates(labels, observed, positions, size, rows_of)
-            w = w[idx]
-            sums = np.asarray(w @ flat.T).T
-            peak, radius = w @ peaks, radius[idx]
+            if mates is None:
+                mates = _nearest_mates(labels, observed, positions, size + 1, idx)
+            w, radius = _mates_matrix(idx, *mates, size, n)
+            sums = np.asarray(w @ flat_t).T
+            peak = w @ peaks
         ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(per.shape[:2] + (len(idx),)), grid, bound)
         ident = (ps > min_snr * np.sqrt(var_ps)) & (var_rho < 1.0) & np.isfinite(rho) & (peak >= 2)
         return ps, rho, var_ps, var_rho, ident, radius
 
-    cv_rows = {}
-    for size in sizes:
-        ps, rho = fit_size(size, cv_idx)[:2]
-        rho_all = np.zeros(n)
-        rho_all[cv_idx] = rho
-        own = (np.asarray(row_sums(rho_all[None]), np.float64)[0] * inv_s2)[:, cv_idx]
-        cv_rows[size] = own[0] - 2.0 * ps * own[2] + ps * ps * own[1]
+    # Every size's lobes first (one neighbour search serves them all), then every row's own
+    # chi^2 under them in one call, padded to 8 sizes (one compilation for any count).
+    mates = _nearest_mates(labels, observed, positions, sizes[-1] + 1, cv_idx)
+    fits = [fit_size(size, cv_idx, mates)[:2] for size in sizes]
+    rho_cv = np.zeros((-(-len(sizes) // 8) * 8, len(cv_idx)))
+    rho_cv[:len(sizes)] = [rho for _, rho in fits]
+    own = np.asarray(row_sums(rho_cv, rows=cv_idx), np.float64) * inv_s2[cv_idx]
+    cv_rows = {size: own[s, 0] - 2.0 * ps * own[s, 2] + ps * ps * own[s, 1]
+               for s, (size, (ps, _)) in enumerate(zip(sizes, fits))}
     chosen = np.zeros(k, np.int64)
     cv = {size: np.bincount(labels[cv_idx], weights=cv_rows[size], minlength=k) for size in sizes}
     for m in range(k):
@@ -461,7 +473,14 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     out = [np.zeros(n) for _ in range(4)] + [np.zeros(n, bool), np.zeros(n)]
     for size in np.unique(pick):
         at = np.flatnonzero(pick == size)
-        for o, v in zip(out, fit_size(int(size), at)):
+        if size == 0:  # the material whole: its joint lobe (no prior rests on it, `local_prior`)
+            fits = _grid_fit(material_flat.T.reshape(per.shape[:2] + (k,)), grid, bound)
+            ident = (fits[0] > min_snr * np.sqrt(fits[2])) & (fits[3] < 1.0) & np.isfinite(fits[1]) \
+                & (material_peaks >= 2)
+            fits = [f[labels[at]] for f in (*fits, ident)] + [np.full(len(at), np.inf)]
+        else:
+            fits = fit_size(int(size), at)
+        for o, v in zip(out, fits):
             o[at] = v
     return LocalLobes(*out, chosen, cv)
 
