@@ -49,6 +49,7 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import brentq
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 from scipy.stats import chi2 as chi2_dist
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
@@ -541,6 +542,28 @@ def _neighbours(tree, own_idx, positions, at, k):
     return np.asarray(dist).reshape(len(at), kk), own_idx[np.asarray(j).reshape(len(at), kk)]
 
 
+def _neighbours_beyond(own_idx, positions, at, k, min_distance):
+    """As `_neighbours`, but by brute force and only among the own-measured points no closer
+    than `min_distance` and other than the point itself: the `k` nearest, `(m, k)` distances
+    and indices (inf and the point's own index past the last). Where those are most of the
+    points, a tree search for all of them costs more than every distance."""
+    own_pos = positions[own_idx]
+    dist, nbr = np.full((len(at), k), np.inf), np.repeat(np.asarray(at)[:, None], k, axis=1)
+    step = max(1, _SPREAD_PAIRS // max(len(own_idx), 1))
+    for s in range(0, len(at), step):
+        rows = np.asarray(at[s:s + step])
+        d = cdist(positions[rows], own_pos)
+        d[(d < min_distance) | (own_idx[None] == rows[:, None])] = np.inf
+        kk = min(k, d.shape[1])
+        j = np.argpartition(d, kk - 1, axis=1)[:, :kk]
+        dj = np.take_along_axis(d, j, axis=1)
+        order = np.argsort(dj, axis=1, kind="stable")
+        dj, j = np.take_along_axis(dj, order, axis=1), np.take_along_axis(j, order, axis=1)
+        dist[s:s + len(rows), :kk] = dj
+        nbr[s:s + len(rows), :kk] = np.where(np.isfinite(dj), own_idx[j], rows[:, None])
+    return dist, nbr
+
+
 def _usable(at, dist, nbr, neighbours, min_distance=0.0):
     """`(m, k)` bool: the first `neighbours` of each point's neighbours, itself left out and
     none closer than `min_distance`."""
@@ -625,7 +648,10 @@ def _distance_spread(value, var, tree, own_idx, positions, sample, levels, neigh
             kk = int(min(len(own_idx), np.max(reach) + neighbours + 1))
             sub = sample if len(sample) * kk <= _SPREAD_PAIRS else \
                 sample[np.linspace(0, len(sample) - 1, max(_SPREAD_PAIRS // kk, 1)).astype(np.int64)]
-            dist, nbr = _neighbours(tree, own_idx, positions, sub, kk)
+            if len(sub) * len(own_idx) <= 4 * _SPREAD_PAIRS:  # most points are within reach
+                dist, nbr = _neighbours_beyond(own_idx, positions, sub, neighbours, level)
+            else:
+                dist, nbr = _neighbours(tree, own_idx, positions, sub, kk)
             found[level] = sub, dist, nbr, _usable(sub, dist, nbr, neighbours, level)
         sub, dist, nbr, usable = found[level]
         mean, mean_var, used = _smooth_means(value, var + total, nbr, dist, usable, centre, anchor_var + total)
