@@ -275,6 +275,33 @@ def _quadratic_rows(ps_i, rho_i, a=1e4, c=1e4):
     return row_sums
 
 
+@pytest.mark.parametrize("observed", [0, 3, 600])
+def test_local_lobes_on_real_rows_with_few_or_no_observed_rows(observed):
+    """Neighbourhood lobes from the row solver's own sums (`ChunkedRows.row_sums` on the
+    cross-validation rows alone): finite everywhere, whatever few rows are observed; with
+    none, nothing is identifiable and the material is taken whole."""
+    from tests.test_local import synthetic_rows
+
+    n = 600
+    rows, *_ = synthetic_rows(np.random.default_rng(0), n, 12, "torrance-sparrow")
+    chunks = fit_rows(rows, LocalOptions())["chunks"]
+    inv_s2 = (np.arange(n) < observed).astype(float)
+    positions = np.random.default_rng(1).random((n, 3)) * 0.1
+    labels = np.zeros(n, np.int64)
+    local = prior.local_lobes(chunks.row_sums, labels, 1, positions, inv_s2, np.log(brdf.ROUGHNESS_GRID),
+                              peak_samples=np.full(n, 2))
+    for a in (local.ps, local.rho, local.var_ps, local.var_rho):
+        assert not np.any(np.isnan(a))
+    assert np.all(np.isfinite(local.ps)) and np.all(local.ps >= 0)
+    if observed == 0:
+        assert local.neighbours[0] == 0 and not local.identifiable.any()
+    # The sums on a subset are those of the same rows among all of them.
+    grid = np.log(brdf.ROUGHNESS_GRID)[:8, None]
+    some = np.array([5, 7, 599])
+    np.testing.assert_array_equal(chunks.row_sums(np.repeat(grid, 3, 1), rows=some),
+                                  chunks.row_sums(np.repeat(grid, n, 1))[..., some])
+
+
 @pytest.mark.parametrize("slope", [0.0, 40.0])
 def test_local_lobes_choose_the_neighbourhood_by_cross_validation(slope):
     """A lobe the same everywhere in a material takes the whole material; one that varies

@@ -485,6 +485,7 @@ def _material_affinity(pd, nbr, scale):
     return jnp.exp(-jnp.minimum((d / scale) ** 2, 50.0))
 
 
+@partial(jax.jit, static_argnames=("steps", "warm"))
 def _fill_lobes(ps, rho, known, sd_ps, sd_rho, nbr, target, steps=30, warm=False, affinity=None):
     """`(ps, rho)` `(N,)`: every row's lobe from the measured (`known`) lobes nearest it,
     itself first where measured (`fill.precise_huber` over `nbr`, a Huber M-estimate in

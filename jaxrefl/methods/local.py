@@ -723,13 +723,15 @@ class ChunkedRows:
         (float64) coefficients `(c0, a, b)` of each row's squared residual, pd profiled out.
         With `rows` `(m,)` indices: those rows only, `rho` `(G, m)` -> `(G, 3, m)`."""
         if rows is not None:
-            return self.subset(rows).row_sums(rho)
+            return self.subset(rows).row_sums(rho) if len(rows) else np.zeros((len(rho), 3, 0))
         parts = [_reduced(p, jnp.asarray(r), model=self.model) for p, r in zip(self.preps, self._split(rho))]
         return np.concatenate([np.asarray(x, np.float64) for x in parts], axis=-1)[..., :self.n_rows]
 
     def subset(self, rows) -> "ChunkedRows":
         """The rows `rows` `(m,)` (indices, m >= 1) alone, in chunks of the same size (one
         compilation serves both)."""
+        if len(rows) == 0:
+            raise ValueError("ChunkedRows.subset: no rows")
         rows = np.asarray(rows, np.int64)
         idx = jnp.asarray(np.r_[rows, np.full(_bucket(len(rows), self.chunk) - len(rows), rows[-1])])
         gathered = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=-1)[..., idx], *self.preps)

@@ -346,7 +346,9 @@ def _grid_fit(sums, grid, bound):
         return x[lo, cols] * (1.0 - f) + x[lo + 1, cols] * f
 
     aa, bb = at(a), at(b)
-    bnd = bound[lo] * (1.0 - f) + bound[lo + 1] * f
+    lo_b, hi_b = bound[lo], bound[lo + 1]
+    finite = np.isfinite(lo_b) & np.isfinite(hi_b)  # an unbounded ps (inf) stays unbounded, not inf * 0
+    bnd = np.where(finite, np.where(finite, lo_b, 0.0) * (1.0 - f) + np.where(finite, hi_b, 0.0) * f, np.inf)
     ps = np.minimum(np.where((aa > 0) & (bb > 0), bb / np.where(aa > 0, aa, 1.0), 0.0), bnd)
     var_rho = np.where(curv > 0, 2.0 / np.where(curv > 0, curv, 1.0), np.inf)
     # ps's variance given rho is 1 / a; rho's own uncertainty moves the best ps along the
