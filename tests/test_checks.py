@@ -104,6 +104,20 @@ def test_no_valid_observations_is_an_error_naming_the_cause(vase, spoil, words):
         assert words in str(info.value) and info.value.cause == "no valid observations"
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_radiance_from_python_is_an_error_naming_the_field(vase, bad):
+    """Was: NaN samples went on into the fit with "All-NaN slice" warnings; a file with them
+    is refused on load (`validate_scan`), a scan built in Python is refused by the methods."""
+    from jaxrefl.scan.io import ScanError
+
+    radiance = np.array(vase.radiance, np.float64)
+    radiance[::7, 0, 1] = bad
+    scan = dataclasses.replace(vase, radiance=radiance)
+    for estimator in (estimate_local, lambda s: estimate_radiosity(s, RAYS)):
+        with pytest.raises(ScanError, match="radiance.*non-finite.*valid"):
+            estimator(scan)
+
+
 def test_cli_exits_2_without_observations(vase, tmp_path, capsys):
     path, out = tmp_path / "masked.npz", tmp_path / "r.npz"
     save_scan(path, dataclasses.replace(vase, valid=np.zeros_like(vase.valid)))

@@ -1038,13 +1038,15 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     measured, pooled = measured & observed_any, pooled & observed_any
     # The lobe an unresolved point reports: its material's prior lobe; in a material with no
     # prior (joint lobe not identifiable, no point with its own) whose samples still show a
-    # lobe (joint fit ps > 0, seen on its flank), that joint fit, where a lobe copied from the
-    # nearest known points would be another material's (`material_fill`); NaN: the copy (a
-    # joint fit with ps 0 saw no lobe, and its roughness says nothing).
+    # lobe (joint fit ps > 0, seen on its flank, within the energy bound), that joint fit,
+    # where a lobe copied from the nearest known points would be another material's
+    # (`material_fill`); NaN: the copy (a joint fit with ps 0 saw no lobe, and one beyond the
+    # bound is a sharp lobe the samples never reached: neither's roughness says anything).
     fallback = np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan)
     if options.material_fill and (measured | pooled).any():
         joint = np.c_[lobes.ps, np.exp(lobes.rho)][materials.labels]
         shows = np.isnan(fallback[:, 0]) & np.all(np.isfinite(joint), axis=1) & (joint[:, 0] > 0) & (joint[:, 1] > 0)
+        shows &= joint[:, 0] <= brdf.ps_bound(options.model, np.where(shows, joint[:, 1], 1.0))
         fallback[shows] = joint[shows]
     return {"params": params, "sd": sd, "measured": measured, "pooled": pooled,
             "conflict": conflict & ~measured, "labels": materials.labels, "fallback_lobe": fallback}, meta

@@ -313,10 +313,18 @@ _LOW_COVERAGE = 0.5
 def method_input(scan) -> tuple:
     """What every method does first: `(checked_scan(scan), top)`, `top` True where `scan` had not
     been checked yet (the caller is the user, whose warnings the method logs, not another method).
-    Raises `ValueError` for a scan without radiance, `ObservationError` where nothing can be fitted."""
+    Raises `ValueError` for a scan without radiance, `ScanError` for non-finite radiance,
+    `ObservationError` where nothing can be fitted."""
     if scan.radiance is None:
         raise ValueError("radiance: the scan has no observations to estimate from")
     top = not is_checked(scan)
+    if top:
+        bad = int(np.count_nonzero(~np.isfinite(np.asarray(scan.radiance))))
+        if bad:  # a scan built in Python skips `validate_scan`, which a file's load applies
+            from .io import ScanError
+
+            raise ScanError("radiance", f"contains {bad} non-finite value(s) (NaN or inf): mark samples that "
+                            "were not measured False in `valid` and give them any finite value")
     return checked_scan(scan), top
 
 
