@@ -74,7 +74,6 @@ from functools import lru_cache, partial
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import sparse
 
 from ..geometry.raycast import RayCaster
 from ..geometry.rig import observation_geometry
@@ -984,9 +983,7 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     # lobes and per neighbourhood for the local ones.
     grid = np.log(brdf.ROUGHNESS_GRID)
     grid_rows = chunks.row_sums(np.broadcast_to(grid[:, None], (len(grid), len(inv_s2))))
-    member = sparse.csr_matrix((inv_s2, (np.arange(len(inv_s2)), materials.labels)),
-                               shape=(len(inv_s2), materials.k))
-    grid_materials = np.asarray(grid_rows.reshape(-1, len(inv_s2)) @ member).reshape(len(grid), 3, materials.k)
+    grid_materials = prior_mod.material_totals(grid_rows, materials.labels, materials.k, inv_s2)
     lobes = prior_mod.material_lobes(chunks.material_sums, materials.labels, materials.k, inv_s2, grid,
                                      min_snr=options.min_snr, peak_samples=peak, grid_sums=grid_materials)
     # Own lobes count only in a material whose lobe some sample saw near its peak.

@@ -54,7 +54,7 @@ from scipy.stats import chi2 as chi2_dist
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
-           "spread_by_evidence", "status_from_posterior", "prior_conflict"]
+           "spread_by_evidence", "status_from_posterior", "prior_conflict", "material_totals"]
 
 _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
 #: Fewest own lobes from which a material's spread is estimated (a variance from fewer
@@ -359,6 +359,15 @@ def _grid_fit(sums, grid, bound):
     return ps, grid[g] + shift, var_ps, var_rho
 
 
+def material_totals(row_values, labels, k, weights) -> np.ndarray:
+    """Per-row values `(..., N)` -> `(..., k)`: their `weights` `(N,)`-weighted sums over each
+    material's rows (`labels` `(N,)` in `[0, k)`)."""
+    n = len(labels)
+    member = sparse.csr_matrix((np.asarray(weights, np.float64), (np.arange(n), labels)), shape=(n, k))
+    flat = np.asarray(row_values, np.float64).reshape(-1, n)
+    return np.asarray(flat @ member).reshape(np.shape(row_values)[:-1] + (k,))
+
+
 def _nearest_mates(labels, observed, positions, k, at):
     """The `k` nearest observed points of each point `at` `(m,)` (indices) in its own
     material, nearest first, the point itself among them where observed: distances and
@@ -422,7 +431,6 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
         grid_sums = row_sums(np.broadcast_to(grid[:, None], (len(grid), n)))
     per = np.asarray(grid_sums, np.float64) * inv_s2
     flat_t = np.ascontiguousarray(per.reshape(-1, n).T)  # (N, G * 3): rows gathered by the sparse sums
-    onehot = sparse.csr_matrix((np.ones(n), (np.arange(n), labels)), shape=(n, k))
     counts = np.bincount(labels, weights=observed.astype(np.float64), minlength=k)
     sizes = [0]  # the whole material, then 1, 2, 4, ... neighbours
     while len(sizes) < 2 or sizes[-1] < min(max_neighbours, counts.max() - 1):
@@ -433,7 +441,7 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     cv_idx = obs_idx if len(obs_idx) <= _CV_ROWS else \
         obs_idx[np.linspace(0, len(obs_idx) - 1, _CV_ROWS).astype(np.int64)]
 
-    material_flat = np.asarray(onehot.T @ flat_t)  # (K, G * 3) every material's sums
+    material_flat = material_totals(grid_sums, labels, k, inv_s2).reshape(-1, k).T  # (K, G * 3)
     material_peaks = np.bincount(labels, weights=peaks, minlength=k)
 
     def fit_size(size, idx, mates=None):

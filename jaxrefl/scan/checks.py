@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..status import Status
+from .io import ScanError
 
 __all__ = ["ObservationError", "ObservationReport", "check_observations", "exclude_bad_lights", "checked_scan",
            "is_checked", "method_input", "estimate_warnings", "IMPLIED_PD_HIGH", "IMPLIED_PD_LOW", "DARK_RATIO", "BRIGHT_RATIO"]
@@ -321,8 +322,6 @@ def method_input(scan) -> tuple:
     if top:
         bad = int(np.count_nonzero(~np.isfinite(np.asarray(scan.radiance))))
         if bad:  # a scan built in Python skips `validate_scan`, which a file's load applies
-            from .io import ScanError
-
             raise ScanError("radiance", f"contains {bad} non-finite value(s) (NaN or inf): mark samples that "
                             "were not measured False in `valid` and give them any finite value")
     return checked_scan(scan), top
