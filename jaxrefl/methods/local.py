@@ -724,7 +724,25 @@ class ChunkedRows:
         if rows is not None:
             return self.subset(rows).row_sums(rho) if len(rows) else np.zeros((len(rho), 3, 0))
         parts = [_reduced(p, jnp.asarray(r), model=self.model) for p, r in zip(self.preps, self._split(rho))]
-        return np.concatenate([np.asarray(x, np.float64) for x in parts], axis=-1)[..., :self.n_rows]
+        out = np.empty(np.shape(rho)[:-1] + (3, self.n_rows))  # contiguous: callers reshape it
+        for i, part in enumerate(parts):
+            start = i * self.chunk
+            out[..., start:start + self.chunk] = np.asarray(part, np.float64)[..., :self.n_rows - start]
+        return out
+
+    def grid_rows(self, rho_grid, weights) -> np.ndarray:
+        """Every row's `row_sums` at each ln roughness of `rho_grid` `(G,)`, times its
+        `weights` `(N,)`, rows first: `(N, G, 3)` (`prior.weighted_rows`, chunk by chunk)."""
+        g = len(rho_grid)
+        rho = jnp.asarray(np.broadcast_to(np.asarray(rho_grid, np.float64)[:, None], (g, self.chunk)))
+        parts = [_reduced(p, rho, model=self.model) for p in self.preps]
+        out = np.empty((self.n_rows, g, 3))
+        for i, part in enumerate(parts):
+            start = i * self.chunk
+            stop = min(start + self.chunk, self.n_rows)
+            out[start:stop] = prior_mod.weighted_rows(np.asarray(part, np.float64)[..., :stop - start],
+                                                      np.asarray(weights, np.float64)[start:stop])
+        return out
 
     def subset(self, rows) -> "ChunkedRows":
         """The rows `rows` `(m,)` (indices, m >= 1) alone, in chunks of the same size (one
@@ -982,8 +1000,9 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     # Every row's chi^2 coefficients on the roughness grid, summed per material for the joint
     # lobes and per neighbourhood for the local ones.
     grid = np.log(brdf.ROUGHNESS_GRID)
-    grid_rows = chunks.row_sums(np.broadcast_to(grid[:, None], (len(grid), len(inv_s2))))
-    grid_materials = prior_mod.material_totals(grid_rows, materials.labels, materials.k, inv_s2)
+    grid_rows = chunks.grid_rows(grid, inv_s2)  # (N, G, 3)
+    grid_materials = np.moveaxis(prior_mod.material_totals(grid_rows, materials.labels, materials.k,
+                                                           np.ones(len(inv_s2))), 0, -1)  # (G, 3, K)
     lobes = prior_mod.material_lobes(chunks.material_sums, materials.labels, materials.k, inv_s2, grid,
                                      min_snr=options.min_snr, peak_samples=peak, grid_sums=grid_materials)
     # Own lobes count only in a material whose lobe some sample saw near its peak.
@@ -998,7 +1017,7 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     local = prior_mod.local_lobes(chunks.row_sums, materials.labels, materials.k, scan.vertices, inv_s2, grid,
                                   ps_bound=partial(brdf.ps_bound, options.model), min_snr=options.min_snr,
                                   peak_samples=peak, max_neighbours=4 * options.prior_neighbours,
-                                  grid_sums=grid_rows)
+                                  grid_rows=grid_rows)
     spread = _local_spread(chunks, local, materials, s2_safe, rho_own, observed_any, options.steps)
     prior = prior_mod.lobe_prior(fit["ps"], fit["std_ps"] ** 2, rho_own, fit["std_ln_roughness"] ** 2, own,
                                  materials.labels, lobes, scan.vertices, neighbours=options.prior_neighbours,
@@ -1041,10 +1060,11 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     # bound is a sharp lobe the samples never reached: neither's roughness says anything).
     fallback = np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan)
     if options.material_fill and (measured | pooled).any():
-        joint = np.c_[lobes.ps, np.exp(lobes.rho)][materials.labels]
-        shows = np.isnan(fallback[:, 0]) & np.all(np.isfinite(joint), axis=1) & (joint[:, 0] > 0) & (joint[:, 1] > 0)
-        shows &= joint[:, 0] <= brdf.ps_bound(options.model, np.where(shows, joint[:, 1], 1.0))
-        fallback[shows] = joint[shows]
+        joint = np.c_[lobes.ps, np.exp(lobes.rho)]  # (K, 2)
+        lobe = np.all(np.isfinite(joint), axis=1) & (joint[:, 0] > 0) & (joint[:, 1] > 0)
+        lobe &= joint[:, 0] <= brdf.ps_bound(options.model, np.where(lobe, joint[:, 1], 1.0))
+        shows = np.isnan(fallback[:, 0]) & lobe[materials.labels]
+        fallback[shows] = joint[materials.labels[shows]]
     return {"params": params, "sd": sd, "measured": measured, "pooled": pooled,
             "conflict": conflict & ~measured, "labels": materials.labels, "fallback_lobe": fallback}, meta
 

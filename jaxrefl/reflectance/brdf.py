@@ -160,14 +160,27 @@ def specular_albedo(model: str, roughness) -> np.ndarray:
     `8 pi sigma^2` for a narrow Torrance-Sparrow lobe. Gauss-Legendre over the angle of
     view up to where the lobe has fallen below `e^-40`.
     """
+    if model not in ("ward", "torrance-sparrow"):
+        raise ValueError(f"model must be one of {sorted(MODELS)}, got {model!r}")
     r = np.maximum(np.asarray(roughness, np.float64), 1e-6)
-    nodes, weights = np.polynomial.legendre.leggauss(128)
+    flat = r.reshape(-1)
+    # In blocks: the (values, nodes) temporaries of a whole scan would not stay in cache.
+    out = np.concatenate([_specular_albedo_block(model, flat[s:s + _ALBEDO_BLOCK])
+                          for s in range(0, len(flat), _ALBEDO_BLOCK)] or [np.zeros(0)])
+    return out.reshape(r.shape)
+
+
+_ALBEDO_BLOCK = 4096  # roughness values per block of `specular_albedo`
+_ALBEDO_NODES = np.polynomial.legendre.leggauss(128)
+
+
+def _specular_albedo_block(model, r):
+    """`specular_albedo` of `r` `(n,)` (already floored)."""
+    nodes, weights = _ALBEDO_NODES
     if model == "ward":
         top = np.minimum(np.pi / 2, 2.0 * np.arctan(r * np.sqrt(40.0)))
-    elif model == "torrance-sparrow":
-        top = np.minimum(np.pi / 2, 2.0 * r * np.sqrt(80.0))
     else:
-        raise ValueError(f"model must be one of {sorted(MODELS)}, got {model!r}")
+        top = np.minimum(np.pi / 2, 2.0 * r * np.sqrt(80.0))
     theta = 0.5 * top[..., None] * (nodes + 1.0)  # view angle; the half angle is theta / 2
     if model == "ward":
         lobe = np.exp(-np.tan(theta / 2) ** 2 / r[..., None] ** 2) / (4 * np.pi * r[..., None] ** 2) \

@@ -54,7 +54,7 @@ from scipy.stats import chi2 as chi2_dist
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
-           "spread_by_evidence", "status_from_posterior", "prior_conflict", "material_totals"]
+           "spread_by_evidence", "status_from_posterior", "prior_conflict", "material_totals", "weighted_rows"]
 
 _VAR_FLOOR = 1e-8  # numerical floor of every variance (ln units)
 #: Fewest own lobes from which a material's spread is estimated (a variance from fewer
@@ -360,12 +360,13 @@ def _grid_fit(sums, grid, bound):
 
 
 def material_totals(row_values, labels, k, weights) -> np.ndarray:
-    """Per-row values `(..., N)` -> `(..., k)`: their `weights` `(N,)`-weighted sums over each
-    material's rows (`labels` `(N,)` in `[0, k)`)."""
+    """Per-row values, rows first, `(N, ...)` -> `(k, ...)`: their `weights` `(N,)`-weighted
+    sums over each material's rows (`labels` `(N,)` in `[0, k)`), each material's rows
+    added in order."""
     n = len(labels)
-    member = sparse.csr_matrix((np.asarray(weights, np.float64), (np.arange(n), labels)), shape=(n, k))
-    flat = np.asarray(row_values, np.float64).reshape(-1, n)
-    return np.asarray(flat @ member).reshape(np.shape(row_values)[:-1] + (k,))
+    member = sparse.csr_matrix((np.asarray(weights, np.float64), (labels, np.arange(n))), shape=(k, n))
+    flat = np.asarray(row_values, np.float64).reshape(n, -1)
+    return np.asarray(member @ flat).reshape((k,) + np.shape(row_values)[1:])
 
 
 def _nearest_mates(labels, observed, positions, k, at):
@@ -394,7 +395,7 @@ def _mates_matrix(at, dist, nbr, size, n):
 
 
 def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None, min_snr: float = 3.0,
-                peak_samples=None, max_neighbours: int = 64, grid_sums=None) -> LocalLobes:
+                peak_samples=None, max_neighbours: int = 64, grid_rows=None) -> LocalLobes:
     """Each point's lobe from its neighbours' samples, the neighbourhood's size chosen by
     leave-one-out cross-validation.
 
@@ -405,7 +406,8 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     `positions` `(N, 3)`; `inv_s2` `(N,)` 1 / residual variance scale (0 leaves a row out);
     `rho_grid` `(G,)` evenly spaced ln roughness; `ps_bound(roughness)` the largest physical ps
     (`brdf.ps_bound`; None: unbounded); `min_snr`, `peak_samples` as `material_lobes`;
-    `grid_sums` `(G, 3, N)`: `row_sums` at `rho_grid` where the caller has them.
+    `grid_rows` `(N, G, 3)`: `row_sums` at `rho_grid` times `inv_s2`, rows first
+    (`weighted_rows`), where the caller has them.
 
     A point's neighbourhood is its `n` nearest observed material-mates (`n` = 1, 2, 4, ...)
     or the whole material; its lobe is their joint maximum-likelihood fit, each row's pd
@@ -427,10 +429,10 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     observed = inv_s2 > 0
     peaks = np.zeros(n) if peak_samples is None else np.asarray(peak_samples, np.float64) * observed
     bound = np.full(len(grid), np.inf) if ps_bound is None else np.asarray(ps_bound(np.exp(grid)), np.float64)
-    if grid_sums is None:
-        grid_sums = row_sums(np.broadcast_to(grid[:, None], (len(grid), n)))
-    per = np.asarray(grid_sums, np.float64) * inv_s2
-    flat_t = np.ascontiguousarray(per.reshape(-1, n).T)  # (N, G * 3): rows gathered by the sparse sums
+    if grid_rows is None:
+        grid_rows = weighted_rows(row_sums(np.broadcast_to(grid[:, None], (len(grid), n))), inv_s2)
+    flat_t = np.asarray(grid_rows, np.float64).reshape(n, -1)  # (N, G * 3)
+    grid_shape = (len(grid), 3)
     counts = np.bincount(labels, weights=observed.astype(np.float64), minlength=k)
     sizes = [0]  # the whole material, then 1, 2, 4, ... neighbours
     while len(sizes) < 2 or sizes[-1] < min(max_neighbours, counts.max() - 1):
@@ -441,7 +443,7 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     cv_idx = obs_idx if len(obs_idx) <= _CV_ROWS else \
         obs_idx[np.linspace(0, len(obs_idx) - 1, _CV_ROWS).astype(np.int64)]
 
-    material_flat = material_totals(grid_sums, labels, k, inv_s2).reshape(-1, k).T  # (K, G * 3)
+    material_flat = material_totals(flat_t, labels, k, np.ones(n))  # (K, G * 3)
     material_peaks = np.bincount(labels, weights=peaks, minlength=k)
 
     def fit_size(size, idx, mates=None):
@@ -457,7 +459,7 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
             w, radius = _mates_matrix(idx, *mates, size, n)
             sums = np.asarray(w @ flat_t).T
             peak = w @ peaks
-        ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(per.shape[:2] + (len(idx),)), grid, bound)
+        ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(grid_shape + (len(idx),)), grid, bound)
         ident = (ps > min_snr * np.sqrt(var_ps)) & (var_rho < 1.0) & np.isfinite(rho) & (peak >= 2)
         return ps, rho, var_ps, var_rho, ident, radius
 
@@ -485,7 +487,7 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     for size in np.unique(pick):
         at = np.flatnonzero(pick == size)
         if size == 0:  # the material whole: its joint lobe (no prior rests on it, `local_prior`)
-            fits = _grid_fit(material_flat.T.reshape(per.shape[:2] + (k,)), grid, bound)
+            fits = _grid_fit(material_flat.T.reshape(grid_shape + (k,)), grid, bound)
             ident = (fits[0] > min_snr * np.sqrt(fits[2])) & (fits[3] < 1.0) & np.isfinite(fits[1]) \
                 & (material_peaks >= 2)
             fits = [f[labels[at]] for f in (*fits, ident)] + [np.full(len(at), np.inf)]
@@ -494,6 +496,19 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
         for o, v in zip(out, fits):
             o[at] = v
     return LocalLobes(*out, chosen, cv)
+
+
+def weighted_rows(sums, weights, block: int = 4096) -> np.ndarray:
+    """Per-row coefficients `(G, 3, N)` (`row_sums`) times `weights` `(N,)`, rows first:
+    `(N, G, 3)`, the layout sums over rows gather. The transpose and the product in one pass
+    over cache-sized blocks, one new array: a scan's grid sums are hundreds of MB, and each
+    temporary of that size costs its pages."""
+    sums, weights = np.asarray(sums, np.float64), np.asarray(weights, np.float64)
+    flat = sums.reshape(-1, sums.shape[-1])
+    out = np.empty(flat.shape[::-1])
+    for start in range(0, flat.shape[1], block):
+        np.multiply(flat[:, start:start + block].T, weights[start:start + block, None], out=out[start:start + block])
+    return out.reshape((flat.shape[1],) + sums.shape[:-1])
 
 
 def _beats_by_one_se(gain) -> bool:
