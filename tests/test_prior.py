@@ -1,6 +1,7 @@
 """The shared reflectance prior (jaxrefl.reflectance.prior) through Method I, on rig-zoo scenes."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from jaxrefl.methods.local import (
     UNRESOLVED,
     LocalOptions,
     _bound_lobes,
+    _pd_with_prior,
     estimate_local,
     fit_rows,
     prepare_rows,
@@ -188,6 +190,27 @@ def test_diffuse_prior_ignores_the_values_of_points_without_a_fit(field):
     assert np.all(np.isfinite(d_bad.mean)) and np.all(np.isfinite(d_bad.var[d_bad.available]))
     np.testing.assert_array_equal(d_bad.mean, d_zero.mean)
     np.testing.assert_array_equal(d_bad.var, d_zero.var)
+
+
+def test_a_material_without_points_gets_a_pd_entry_not_a_crash():
+    """The mixture may end with a component that wins no point (it did on a uniform fold
+    fitted with the other lobe model): Method I's meta lists every material, and the pd
+    prior reports one for each, the empty one with no spread (None in the JSON)."""
+    pos, rng = _sphere(600, 5)
+    labels = (pos[:, 0] > 0).astype(np.int64)  # materials 0 and 1; material 2 has no point
+    own = np.where(labels[:, None] == 0, 0.3, 0.6) * (1 + 0.02 * rng.standard_normal((600, 3)))
+    sd = 0.02 * own
+    d = prior.diffuse_prior(own, sd**2, np.ones(600, bool), labels, pos, k=3)
+    assert d.spread.shape == (3, 3) and d.neighbours.shape == (3,)
+    assert np.all(np.isfinite(d.spread[:2])) and np.all(np.isinf(d.spread[2]))
+    meta = {"material_lobes": [{} for _ in range(3)]}
+    pd, std = own.copy(), sd.copy()
+    _pd_with_prior(SimpleNamespace(vertices=pos), labels, np.ones(600, bool), np.zeros((600, 3), bool), pd, std,
+                   LocalOptions(), meta)
+    assert meta["material_lobes"][2]["spread_pd"] == [None, None, None]
+    assert all(None not in entry["spread_pd"] for entry in meta["material_lobes"][:2])
+    assert np.all(np.isfinite(pd)) and np.all(np.isfinite(std))
+    json.dumps(meta, allow_nan=False)
 
 
 def test_diffuse_prior_leaves_a_detail_its_neighbours_do_not_share():

@@ -916,7 +916,7 @@ def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) 
     counts, and each of its `material_lobes` entries (where it has them) its pd spread."""
     std_pd[dark] = np.inf
     diffuse = prior_mod.diffuse_prior(pd, std_pd**2, observed_any, labels, scan.vertices,
-                                      neighbours=options.prior_neighbours)
+                                      neighbours=options.prior_neighbours, k=len(meta.get("material_lobes", [])))
     prior_mod.combine_with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
     np.clip(pd, 0.0, 1.0, out=pd)  # the fit's bounds
     for m, entry in enumerate(meta.get("material_lobes", [])):

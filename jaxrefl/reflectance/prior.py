@@ -922,7 +922,7 @@ class DiffusePrior:
     neighbours: np.ndarray
 
 
-def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) -> DiffusePrior:
+def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16, k: int | None = None) -> DiffusePrior:
     """Empirical-Bayes prior of every point's diffuse albedo, per material and channel, as
     `lobe_prior` builds it for a lobe from the points' own fits: the precision-weighted mean
     of the nearest material-mates' pd (`neighbours` of them, the point left out, or a local
@@ -935,11 +935,12 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16) ->
     `_CONFLICT_ALPHA`) is a detail the neighbours do not share: it gets no prior.
 
     **Arguments:** `pd`, `var_pd` `(N, 3)` each point's own fit and its variance; `known`
-    `(N,)` bool the points with an own fit; `labels` `(N,)` materials; `positions` `(N, 3)`.
+    `(N,)` bool the points with an own fit; `labels` `(N,)` materials; `positions` `(N, 3)`;
+    `k` the number of materials (default `labels.max() + 1`; a material may have no point).
     """
     pd, var_pd = np.asarray(pd, np.float64), np.asarray(var_pd, np.float64)
     n = len(pd)
-    k = int(labels.max()) + 1 if n else 0
+    k = max(int(labels.max()) + 1 if n else 0, k or 0)
     known = np.asarray(known, bool) & np.all(np.isfinite(pd) & np.isfinite(var_pd), axis=1)
     mean, var = np.zeros((n, 3)), np.full((n, 3), np.inf)
     spreads = np.full((k, 3), np.inf)
