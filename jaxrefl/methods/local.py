@@ -736,12 +736,13 @@ class ChunkedRows:
         g = len(rho_grid)
         rho = jnp.asarray(np.broadcast_to(np.asarray(rho_grid, np.float64)[:, None], (g, self.chunk)))
         parts = [_reduced(p, rho, model=self.model) for p in self.preps]
+        weights = np.asarray(weights, np.float64)
         out = np.empty((self.n_rows, g, 3))
         for i, part in enumerate(parts):
             start = i * self.chunk
             stop = min(start + self.chunk, self.n_rows)
             out[start:stop] = prior_mod.weighted_rows(np.asarray(part, np.float64)[..., :stop - start],
-                                                      np.asarray(weights, np.float64)[start:stop])
+                                                      weights[start:stop])
         return out
 
     def subset(self, rows) -> "ChunkedRows":

@@ -160,7 +160,7 @@ def specular_albedo(model: str, roughness) -> np.ndarray:
     `8 pi sigma^2` for a narrow Torrance-Sparrow lobe. Gauss-Legendre over the angle of
     view up to where the lobe has fallen below `e^-40`.
     """
-    if model not in ("ward", "torrance-sparrow"):
+    if model not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {model!r}")
     r = np.maximum(np.asarray(roughness, np.float64), 1e-6)
     flat = r.reshape(-1)

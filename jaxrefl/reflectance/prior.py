@@ -446,6 +446,13 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     material_flat = material_totals(flat_t, labels, k, np.ones(n))  # (K, G * 3)
     material_peaks = np.bincount(labels, weights=peaks, minlength=k)
 
+    def lobes_of(sums, peak):
+        """`(ps, rho, var_ps, var_rho, ident)` `(m,)` of sums `(G * 3, m)` whose rows hold
+        `peak` `(m,)` samples near a specular peak (identifiable as in `material_lobes`)."""
+        ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(grid_shape + (sums.shape[-1],)), grid, bound)
+        ident = (ps > min_snr * np.sqrt(var_ps)) & (var_rho < 1.0) & np.isfinite(rho) & (peak >= 2)
+        return ps, rho, var_ps, var_rho, ident
+
     def fit_size(size, idx, mates=None):
         """The lobes `(ps, rho, var_ps, var_rho, ident, radius)` of rows `idx` for `size`
         (`mates`: `_nearest_mates` of `idx` for at least `size + 1` neighbours)."""
@@ -459,9 +466,7 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
             w, radius = _mates_matrix(idx, *mates, size, n)
             sums = np.asarray(w @ flat_t).T
             peak = w @ peaks
-        ps, rho, var_ps, var_rho = _grid_fit(sums.reshape(grid_shape + (len(idx),)), grid, bound)
-        ident = (ps > min_snr * np.sqrt(var_ps)) & (var_rho < 1.0) & np.isfinite(rho) & (peak >= 2)
-        return ps, rho, var_ps, var_rho, ident, radius
+        return (*lobes_of(sums, peak), radius)
 
     # Every size's lobes first (one neighbour search serves them all), then every row's own
     # chi^2 under them in one call, padded to 8 sizes (one compilation for any count).
@@ -487,10 +492,7 @@ def local_lobes(row_sums, labels, k, positions, inv_s2, rho_grid, ps_bound=None,
     for size in np.unique(pick):
         at = np.flatnonzero(pick == size)
         if size == 0:  # the material whole: its joint lobe (no prior rests on it, `local_prior`)
-            fits = _grid_fit(material_flat.T.reshape(grid_shape + (k,)), grid, bound)
-            ident = (fits[0] > min_snr * np.sqrt(fits[2])) & (fits[3] < 1.0) & np.isfinite(fits[1]) \
-                & (material_peaks >= 2)
-            fits = [f[labels[at]] for f in (*fits, ident)] + [np.full(len(at), np.inf)]
+            fits = [f[labels[at]] for f in lobes_of(material_flat.T, material_peaks)] + [np.full(len(at), np.inf)]
         else:
             fits = fit_size(int(size), at)
         for o, v in zip(out, fits):
