@@ -4,13 +4,10 @@ A point's own samples may pin its specular lobe (ps, ln roughness `rho`), or see
 light, off-specular, or not at all. The object shares reflectance where it shares a
 material, so the lobe is modelled in levels, every constant of which comes from the data:
 
-1. **Materials** (`fit_materials`): a Gaussian mixture over per-point features (pd per
-   channel, with a full covariance: an error the channels share, such as shading or light
-   the model misses, moves a grey point along the grey axis and is not a second material;
-   ln ps and `rho` where the point's own lobe is measured, diagonal), each point's own
-   variance added (fitted by extreme deconvolution, so a point without a lobe is clustered by
-   its colour alone and a loose one weighs little). K = 1 .. `k_max`, chosen by the Bayesian
-   information criterion.
+1. **Materials** (`fit_materials`): a diagonal Gaussian mixture over per-point features
+   (pd per channel; ln ps and `rho` where the point's own lobe is measured, each with the
+   point's own variance added, so a point without a lobe is clustered by its colour alone).
+   K = 1 .. `k_max`, chosen by the Bayesian information criterion.
 2. **A material's lobe** (`material_lobes`): the joint maximum-likelihood fit of one
    (ps, `rho`) to all the material's samples at once, every point's pd profiled out. Points
    that each see one half-angle together see many.
@@ -83,82 +80,14 @@ class Materials:
     bic: dict
 
 
-_COLOUR = 3  # the first features, pd per channel: one full covariance per material
-#: A symmetric 3 x 3 matrix is held as its six entries `(..., 6)` in this order (elementwise
-#: arithmetic: batched LAPACK calls on millions of tiny matrices would dominate the mixture).
-_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-_EYE6 = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
-
-
-def _sym3_inverse(e):
-    """Inverse `(..., 6)` and log determinant `(...)` of symmetric positive definite 3 x 3
-    matrices `e` `(..., 6)` (`_PAIRS` order), by cofactors."""
-    a00, a11, a22, a01, a02, a12 = (e[..., j] for j in range(6))
-    c00, c11, c22 = a11 * a22 - a12 * a12, a00 * a22 - a02 * a02, a00 * a11 - a01 * a01
-    c01, c02, c12 = a02 * a12 - a01 * a22, a01 * a12 - a02 * a11, a01 * a02 - a00 * a12
-    det = jnp.maximum(a00 * c00 + a01 * c01 + a02 * c02, jnp.finfo(e.dtype).tiny)
-    return jnp.stack([c00, c11, c22, c01, c02, c12], -1) / det[..., None], jnp.log(det)
-
-
-def _sym3_matvec(e, d):
-    """`e @ d` for symmetric `e` `(..., 6)` and vectors `d` `(..., 3)`."""
-    return jnp.stack([e[..., 0] * d[..., 0] + e[..., 3] * d[..., 1] + e[..., 4] * d[..., 2],
-                     e[..., 3] * d[..., 0] + e[..., 1] * d[..., 1] + e[..., 5] * d[..., 2],
-                     e[..., 4] * d[..., 0] + e[..., 5] * d[..., 1] + e[..., 2] * d[..., 2]], -1)
-
-
-def _sym3_smallest(e):
-    """Smallest eigenvalue `(...)` of symmetric 3 x 3 matrices `e` `(..., 6)` (closed form:
-    Smith 1961)."""
-    q = (e[..., 0] + e[..., 1] + e[..., 2]) / 3.0
-    off = e[..., 3] ** 2 + e[..., 4] ** 2 + e[..., 5] ** 2
-    p = jnp.sqrt(((e[..., 0] - q) ** 2 + (e[..., 1] - q) ** 2 + (e[..., 2] - q) ** 2 + 2.0 * off) / 6.0)
-    b = (e - q[..., None] * _EYE6.astype(e.dtype).reshape((1,) * q.ndim + (6,))) / jnp.where(p > 0, p, 1.0)[..., None]
-    det = b[..., 0] * (b[..., 1] * b[..., 2] - b[..., 5] ** 2) - b[..., 3] * (b[..., 3] * b[..., 2] - b[..., 5] * b[..., 4]) \
-        + b[..., 4] * (b[..., 3] * b[..., 5] - b[..., 1] * b[..., 4])
-    phi = jnp.arccos(jnp.clip(det / 2.0, -1.0, 1.0)) / 3.0
-    return jnp.where(p > 0, q + 2.0 * p * jnp.cos(phi + 2.0 * np.pi / 3.0), q)
-
-
-def _sym3_full(e):
-    """`(..., 3, 3)` matrices from their entries `e` `(..., 6)` (`_PAIRS`)."""
-    return jnp.stack([e[..., [0, 3, 4]], e[..., [3, 1, 5]], e[..., [4, 5, 2]]], -2)
-
-
-def _pair_mask(present):
-    """`(n, 6)` bool: both channels of each entry (`_PAIRS`) present, from `present` `(n, 3)`."""
-    return present[:, [i for i, _ in _PAIRS]] & present[:, [j for _, j in _PAIRS]]
-
-
-def _colour_density(x, v, mu, cov):
-    """The colour's part of `_log_density`: `(-2 log density (n, K), inverse covariances
-    (n, K, 6))` of points `x`, `v` `(n, 3)` (v inf: missing channel) under components `mu`
-    `(K, 3)`, `cov` `(K, 6)`. Each point's covariance is the component's plus its own
-    variances; a missing channel is decoupled (unit variance, no covariance, no deviation),
-    so it drops out, and its entries of the inverse are 0 (no information)."""
-    present = jnp.isfinite(v)
-    pairs = _pair_mask(present)[:, None]  # (n, 1, 6)
-    own = jnp.concatenate([jnp.where(present, v, 0.0), jnp.zeros_like(v)], -1)  # (n, 6)
-    c = jnp.where(pairs, cov[None] + own[:, None], _EYE6.astype(cov.dtype)[None, None])
-    inv, logdet = _sym3_inverse(c)
-    dx = jnp.where(present[:, None], x[:, None] - mu[None], 0.0)  # (n, K, 3)
-    quad = jnp.sum(dx * _sym3_matvec(inv, dx), -1)
-    return quad + logdet + present.sum(1)[:, None] * float(np.log(2 * np.pi)), jnp.where(pairs, inv, 0.0)
-
-
-def _log_density(x, v, mu, tau2, cov, log_w):
-    """Per point and component log density `(n, K)` of the mixture, and the colour's inverse
-    covariances `(n, K, 6)` (`_colour_density`): the colour (the first
-    `_COLOUR` features) Gaussian with a full covariance `cov` `(K, 6)` per component
-    (`_PAIRS`), the other features diagonal (`tau2` `(K, D)`); each plus the point's own
-    variance `v` `(n, D)`. Features with infinite `v` are marginalised out."""
-    c = _COLOUR
-    present = jnp.isfinite(v[:, c:])
-    var = tau2[None, :, c:] + jnp.where(present, v[:, c:], 0.0)[:, None]  # (n, K, D - 3)
-    d2 = (jnp.where(present, x[:, c:], 0.0)[:, None] - mu[None, :, c:]) ** 2 / var
-    terms = jnp.where(present[:, None], d2 + jnp.log(2 * np.pi * var), 0.0).sum(-1)
-    colour, inv = _colour_density(x[:, :_COLOUR], v[:, :_COLOUR], mu[:, :_COLOUR], cov)
-    return log_w[None] - 0.5 * (terms + colour), inv
+def _log_density(x, v, mu, tau2, log_w, xp=np):
+    """Per point and component log density `(n, K)` of the diagonal mixture; dimensions with
+    infinite observation variance `v` are marginalised out (`xp`: numpy or jax.numpy)."""
+    present = xp.isfinite(v)
+    var = tau2[None] + xp.where(present, v, 0.0)[:, None]  # (n, K, D)
+    d2 = (xp.where(present, x, 0.0)[:, None] - mu[None]) ** 2 / var
+    terms = xp.where(present[:, None], d2 + xp.log(2 * np.pi * var), 0.0)
+    return log_w[None] - 0.5 * terms.sum(-1)
 
 
 def _lloyd_seeds(colour, k, rng):
@@ -178,33 +107,26 @@ def _lloyd_seeds(colour, k, rng):
 
 @partial(jax.jit, static_argnames=("iterations",))
 def _em_batch(x, v, weight, resp, active, iterations=100):
-    """EM for mixtures with per-point observation variances, one per batch row: each
-    component's colour (the first `_COLOUR` features) with a full covariance, the other
-    features diagonal (`_log_density`).
+    """EM for diagonal mixtures with per-point observation variances, one per batch row.
 
     **Arguments:** `x`, `v` `(n, D)` (v inf: missing); `weight` `(n,)` 1 for a point, 0 for
     padding; `resp` `(B, n, K)` initial responsibilities; `active` `(B, K)` bool, the
     components each row uses (a K-component fit is a row with the first K active).
 
-    **Returns:** per row the log likelihood `(B,)`, `mu`, `tau2` `(B, K, D)` (the colour's
-    variances are the diagonal of its covariance), the colour covariance `(B, K, 6)`
-    (`_PAIRS`), `log_w` `(B, K)` and `collapsed` `(B,)` (a component fell under `max(2, 2 D)` points).
+    **Returns:** per row the log likelihood `(B,)`, `mu`, `tau2` `(B, K, D)`, `log_w`
+    `(B, K)` and `collapsed` `(B,)` (a component fell under `max(2, 2 D)` points).
     """
     dim = x.shape[1]
     n = weight.sum()
     present = jnp.isfinite(v) & (weight[:, None] > 0)
     xx, vv = jnp.where(present, x, 0.0), jnp.where(present, v, 0.0)
-    pc = present[:, :_COLOUR]
-    pairs = _pair_mask(pc)[:, None]  # (n, 1, 6): colour entries whose channels are both present
-    v_in = jnp.where(present, v, jnp.inf)
-    dtype = x.dtype
     tol = max(_EM_TOL, 10 * float(jnp.finfo(x.dtype).eps))
 
     def one(resp0, act):
         k = resp0.shape[1]
 
         def step(state):
-            resp, mu, _, tau2, cov, inv, ll, _, it, collapsed = state
+            resp, _, _, tau2, ll, _, it, collapsed = state
             resp = resp * weight[:, None]
             nk = resp.sum(0)
             collapsed = collapsed | jnp.any(act & (nk < max(2.0, 2 * dim)))
@@ -213,51 +135,28 @@ def _em_batch(x, v, weight, resp, active, iterations=100):
             w = r / (tau2[None] + vv[:, None, :])
             sw, sr = w.sum(0), r.sum(0)
             mu = jnp.where(sw > 0, jnp.sum(w * xx[:, None, :], 0) / jnp.where(sw > 0, sw, 1.0), 0.0)
-            # Each point's colour is its component's (mean `mu`, covariance `cov`) seen through
-            # its own noise: the mean is the generalised least-squares one under the sum (`inv`,
-            # its inverse, from the last E-step), and the covariance takes the EM step of that
-            # model ("extreme deconvolution", Bovy, Hogg & Roweis 2011): `cov + cov (G - L) cov
-            # / n_k`, with `L` the summed inverses and `G` the summed outer products of
-            # `inv (x - mu)`. Unlike moments less the noise, it stays positive definite, and a
-            # point with a huge own variance adds nothing.
-            rinv = resp[:, :, None] * inv  # (n, K, 6)
-            lhs = rinv.sum(0) + jnp.where(jnp.any(pairs, 0), 0.0, _EYE6.astype(dtype)[None])
-            rhs = jnp.sum(_sym3_matvec(rinv, xx[:, None, :_COLOUR]), 0)
-            mu = mu.at[:, :_COLOUR].set(_sym3_matvec(_sym3_inverse(lhs)[0], rhs))
-            g = _sym3_matvec(inv, jnp.where(pc[:, None], xx[:, None, :_COLOUR] - mu[None, :, :_COLOUR], 0.0))
-            gg = jnp.sum(resp[:, :, None] * jnp.stack([g[..., i] * g[..., j] for i, j in _PAIRS], -1), 0)  # (K, 6)
-            full = _sym3_full(cov)
-            step_ = full @ _sym3_full(gg - rinv.sum(0)) @ full / jnp.maximum(nk, 1e-30)[:, None, None]
-            cov = cov + jnp.stack([step_[:, i, j] for i, j in _PAIRS], -1)
-            cov = cov + jnp.maximum(_VAR_FLOOR - _sym3_smallest(cov), 0.0)[:, None] * _EYE6.astype(dtype)[None]
-            # The other features, one at a time, the same step.
-            prec = r / (tau2[None] + vv[:, None, :])  # (n, K, D): responsibility / (tau2 + v)
-            dev = xx[:, None, :] - mu[None]
-            tau2 = jnp.maximum(tau2 + tau2**2 * jnp.sum(prec * (dev**2 / (tau2[None] + vv[:, None, :]) - 1.0), 0)
-                               / jnp.maximum(sr, 1e-30), _VAR_FLOOR)
-            tau2 = tau2.at[:, :_COLOUR].set(cov[:, :_COLOUR])
-            logp, inv = _log_density(x, v_in, mu, tau2, cov, log_w)
+            moment = jnp.sum(r * ((xx[:, None, :] - mu[None]) ** 2 - vv[:, None, :]), 0) / jnp.where(sr > 0, sr, 1.0)
+            tau2 = jnp.where(sr > 0, jnp.maximum(moment, _VAR_FLOOR), 1.0)
+            logp = _log_density(x, jnp.where(present, v, jnp.inf), mu, tau2, log_w, jnp)
             total = jax.nn.logsumexp(logp, axis=1)
-            return (jnp.exp(logp - total[:, None]), mu, log_w, tau2, cov, inv, jnp.sum(total * weight), ll, it + 1,
-                    collapsed)
+            return (jnp.exp(logp - total[:, None]), mu, log_w, tau2, jnp.sum(total * weight), ll, it + 1, collapsed)
 
         def going(state):
-            ll, previous, it, collapsed = state[6:]
+            ll, previous, it, collapsed = state[4:]
             return (it < iterations) & ~collapsed & ((it < 1) | (ll - previous >= tol * jnp.abs(ll) + 1e-9))
 
-        mu0, cov0 = jnp.zeros((k, dim), dtype), jnp.broadcast_to(_EYE6.astype(dtype), (k, 6))
-        init = (resp0, mu0, jnp.full(k, -jnp.log(k), dtype), jnp.ones((k, dim), dtype), cov0,
-                _colour_density(x[:, :_COLOUR], v_in[:, :_COLOUR], mu0[:, :_COLOUR], cov0)[1],
+        dtype = x.dtype
+        init = (resp0, jnp.zeros((k, dim), dtype), jnp.full(k, -jnp.log(k), dtype), jnp.ones((k, dim), dtype),
                 jnp.asarray(-jnp.inf, dtype), jnp.asarray(-jnp.inf, dtype), 0, jnp.asarray(False))
-        _, mu, log_w, tau2, cov, _, ll, _, _, collapsed = jax.lax.while_loop(going, step, init)
-        return ll, mu, tau2, cov, log_w, collapsed
+        _, mu, log_w, tau2, ll, _, _, collapsed = jax.lax.while_loop(going, step, init)
+        return ll, mu, tau2, log_w, collapsed
 
     return jax.vmap(one)(resp, active)
 
 
 def _em_fits(x, v, ks, seed):
     """The best non-collapsed mixture of each K in `ks` over `_RESTARTS` seedings (one for
-    K = 1), all in one batched EM: `{k: (log likelihood, mu, tau2, colour covariance, log_w)}`."""
+    K = 1), all in one batched EM: `{k: (log likelihood, mu, tau2, log_w)}`."""
     n, k_pad = len(x), max(ks)
     n_pad = -(-n // 250) * 250  # one compilation for scans of similar size
     rows = [(k, r) for k in ks for r in range(1 if k == 1 else _RESTARTS)]
@@ -269,32 +168,15 @@ def _em_fits(x, v, ks, seed):
     pad = [(0, n_pad - n), (0, 0)]
     out = _em_batch(jnp.asarray(np.pad(x, pad), dtype), jnp.asarray(np.pad(v, pad, constant_values=np.inf), dtype),
                     jnp.asarray(np.arange(n_pad) < n, dtype), jnp.asarray(resp, dtype), jnp.asarray(active))
-    ll, mu, tau2, cov, log_w = (np.asarray(a, np.float64) for a in out[:5])
-    ok = ~np.asarray(out[5]) & np.isfinite(ll)
+    ll, mu, tau2, log_w = (np.asarray(a, np.float64) for a in out[:4])
+    ok = ~np.asarray(out[4]) & np.isfinite(ll)
     fits = {}
     for k in ks:
         cand = [b for b, (kb, _) in enumerate(rows) if kb == k and ok[b]]
         if cand:
             b = max(cand, key=lambda i: ll[i])
-            fits[k] = (ll[b], mu[b, :k], tau2[b, :k], cov[b, :k], log_w[b, :k])
+            fits[k] = (ll[b], mu[b, :k], tau2[b, :k], log_w[b, :k])
     return fits
-
-
-@jax.jit
-def _assign_block(x, v, mu, tau2, cov, log_w):
-    return jnp.argmax(_log_density(x, v, mu, tau2, cov, log_w)[0], axis=1)
-
-
-def _assign(x, v, mu, tau2, cov, log_w, block: int = 8192) -> np.ndarray:
-    """`(n,)` the most probable component of each point (`_log_density`), in blocks of
-    `block` points (one compilation for any n; the last block padded with missing points)."""
-    n = len(x)
-    pad = -n % block
-    x = np.pad(x, [(0, pad), (0, 0)])
-    v = np.pad(v, [(0, pad), (0, 0)], constant_values=np.inf)
-    out = [np.asarray(_assign_block(x[i:i + block], v[i:i + block], mu, tau2, cov, log_w))
-           for i in range(0, n + pad, block)]
-    return np.concatenate(out)[:n].astype(np.int64)
 
 
 def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 2000,
@@ -317,14 +199,7 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
     rng = np.random.default_rng(seed)
     fit_idx = np.sort(rng.choice(idx, size=min(sample, len(idx)), replace=False))
-    # Standardised features: the mixture runs in float32, and a colour covariance of the
-    # size of pd's noise (1e-6) would lose its digits in the cofactors. BIC is unchanged (the
-    # same affine map for every K).
-    present = np.isfinite(v[idx])
-    centre = np.array([np.median(x[idx][present[:, d], d]) if present[:, d].any() else 0.0 for d in range(x.shape[1])])
-    scale = np.array([np.std(x[idx][present[:, d], d]) if present[:, d].sum() > 1 else 1.0 for d in range(x.shape[1])])
-    scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
-    xs, vs = (x[fit_idx] - centre) / scale, v[fit_idx] / scale**2
+    xs, vs = x[fit_idx], v[fit_idx]
     n_fit, dim = xs.shape
     # A few seedings per K: k-means++ can start two components in one material, which then
     # collapse; the best likelihood of those that do not is kept. K is searched three at a
@@ -336,7 +211,7 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
         for k in ks:
             if k not in fits:
                 continue
-            bic[k] = -2.0 * fits[k][0] + (k - 1 + k * (2 * dim + _COLOUR)) * np.log(n_fit)
+            bic[k] = -2.0 * fits[k][0] + (k - 1 + 2 * k * dim) * np.log(n_fit)
             if best is None or bic[k] < bic[best[0]]:
                 best = (k, fits[k])
             elif k >= best[0] + 2:  # two more components that did not pay: more will not
@@ -345,9 +220,9 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
         k_next = ks[-1] + 1
     if best is None:
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
-    k, (_, mu, tau2, cov, log_w) = best
+    k, (_, mu, tau2, log_w) = best
     labels = np.zeros(n, np.int64)
-    labels[idx] = _assign((x[idx] - centre) / scale, v[idx] / scale**2, mu, tau2, cov, log_w)
+    labels[idx] = np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
     if not has.all():
         _, j = cKDTree(positions[idx]).query(positions[~has], k=1)
         labels[~has] = labels[idx][j]
