@@ -120,6 +120,36 @@ def test_mixture_finds_clusters_with_missing_features():
         assert np.max(np.bincount(mats.labels[labels == j], minlength=3)) == np.sum(labels == j)
 
 
+@pytest.mark.xfail(strict=True, reason="known: the mixture's covariances are diagonal, and a shared error "
+                   "along the grey axis takes several components (Method III splits the uniform glossy fold into "
+                   "six materials this way); a full colour covariance was tried, see RESULTS_notes.md")
+def test_a_grey_material_whose_brightness_varies_is_one_material():
+    """pd of one grey material with an error shared by its channels (shading, interreflection
+    left in the estimate: 1 %, far above each point's own noise of 0.3 %) is one material."""
+    rng = np.random.default_rng(1)
+    n = 1500
+    x = 0.5 + 0.01 * rng.standard_normal((n, 1)) + 0.003 * rng.standard_normal((n, 3))
+    mats = prior.fit_materials(x, np.full((n, 3), 0.003**2), rng.random((n, 3)))
+    assert mats.k == 1, mats.bic
+
+
+def test_a_point_with_a_huge_own_variance_adds_nothing_to_its_material():
+    """Three tight colour clusters; a few points whose own variance is 1e6 times the others'
+    (a pd a sample barely constrains) must neither widen a material nor make one."""
+    rng = np.random.default_rng(2)
+    centres = np.array([[0.6, 0.1, 0.1], [0.1, 0.5, 0.2], [0.8, 0.8, 0.75]])
+    labels = rng.integers(0, 3, 300)
+    x = centres[labels] + 0.01 * rng.standard_normal((300, 3))
+    v = np.full_like(x, 1e-4)
+    v[:5] = 100.0
+    x[:5] = rng.random((5, 3))
+    mats = prior.fit_materials(x, v, rng.random((300, 3)))
+    assert mats.k == 3, mats.bic
+    for j in range(3):
+        found = mats.labels[5:][labels[5:] == j]
+        assert np.all(found == found[0])
+
+
 def test_channels_quantised_to_zero_take_the_prior():
     """8-bit hand-held pairs: a few observed points see every sample of a channel round to
     0 counts. That bounds pd from above, it is not pd = 0: those channels take their
