@@ -769,8 +769,10 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
            "roughness": np.exp(rho_own), "std_ln_roughness": np.sqrt(var_rho)}
     x, v = _features(fit, own, observed_any, dark)
     # Materials by colour alone: a lobe's own fit is loose wherever pd and the lobe trade off
-    # (a flash beside the camera), and clusters that split on it take lobes of their own.
-    materials = prior_mod.fit_materials(x[:, :3], v[:, :3], scan.vertices, k_max=local.materials)
+    # (a flash beside the camera), and clusters that split on it take lobes of their own. One
+    # full colour covariance per material: beside a fold the pd left too bright by light the
+    # model misses is so in every channel, and diagonal clusters split one material on it.
+    materials = prior_mod.fit_materials(x[:, :3], v[:, :3], scan.vertices, k_max=local.materials, covariance="full")
     labels, k = materials.labels, materials.k
     inv_s2 = np.where(observed_any, 1.0 / s2, 0.0)
     coef = own_fit["coef"]

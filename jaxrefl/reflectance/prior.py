@@ -52,6 +52,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 from scipy.stats import chi2 as chi2_dist
 
+from jaxrefl.reflectance import colour_mixture
+
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
            "spread_by_evidence", "status_from_posterior", "prior_conflict", "material_totals", "weighted_rows"]
@@ -154,9 +156,10 @@ def _em_batch(x, v, weight, resp, active, iterations=100):
     return jax.vmap(one)(resp, active)
 
 
-def _em_fits(x, v, ks, seed):
+def _em_fits(x, v, ks, seed, full=False):
     """The best non-collapsed mixture of each K in `ks` over `_RESTARTS` seedings (one for
-    K = 1), all in one batched EM: `{k: (log likelihood, mu, tau2, log_w)}`."""
+    K = 1), all in one batched EM: `{k: (log likelihood, mu, tau2, log_w)}`; with `full` (colour
+    features only, `colour_mixture.em_batch`) `tau2` is each component's covariance `(k, 6)`."""
     n, k_pad = len(x), max(ks)
     n_pad = -(-n // 250) * 250  # one compilation for scans of similar size
     rows = [(k, r) for k in ks for r in range(1 if k == 1 else _RESTARTS)]
@@ -166,8 +169,9 @@ def _em_fits(x, v, ks, seed):
     active = np.arange(k_pad)[None] < np.array([k for k, _ in rows])[:, None]
     dtype = jnp.float32  # clustering needs no more; twice as fast as float64
     pad = [(0, n_pad - n), (0, 0)]
-    out = _em_batch(jnp.asarray(np.pad(x, pad), dtype), jnp.asarray(np.pad(v, pad, constant_values=np.inf), dtype),
-                    jnp.asarray(np.arange(n_pad) < n, dtype), jnp.asarray(resp, dtype), jnp.asarray(active))
+    out = (colour_mixture.em_batch if full else _em_batch)(
+        jnp.asarray(np.pad(x, pad), dtype), jnp.asarray(np.pad(v, pad, constant_values=np.inf), dtype),
+        jnp.asarray(np.arange(n_pad) < n, dtype), jnp.asarray(resp, dtype), jnp.asarray(active))
     ll, mu, tau2, log_w = (np.asarray(a, np.float64) for a in out[:4])
     ok = ~np.asarray(out[4]) & np.isfinite(ll)
     fits = {}
@@ -180,38 +184,52 @@ def _em_fits(x, v, ks, seed):
 
 
 def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 2000,
-                  seed: int = 0) -> Materials:
+                  seed: int = 0, covariance: str = "diagonal") -> Materials:
     """Cluster points into materials, K chosen by BIC.
 
     **Arguments:** `features` `(N, D)` (the first three the colour, pd, always present for
     observed points), `variances` `(N, D)` their observation variances (inf: missing, NaN not
     allowed); `positions` `(N, 3)` (points with no feature at all take the label of the
     nearest point that has one); `k_max`; `sample`: the mixture is fitted on at most this
-    many points (every point is then assigned); `seed` of that subsample and of the seeds.
+    many points (every point is then assigned); `seed` of that subsample and of the seeds;
+    `covariance`: `"diagonal"`, or `"full"` for colour alone (`D` = 3; `colour_mixture`: an
+    error the channels share does not split a material).
 
     **Returns:** `Materials`.
     """
+    if covariance not in ("diagonal", "full"):
+        raise ValueError(f"covariance must be 'diagonal' or 'full', not {covariance!r}")
     x, v = np.asarray(features, np.float64), np.asarray(variances, np.float64)
+    full = covariance == "full"
+    if full and x.shape[1] != 3:
+        raise ValueError(f"covariance='full' clusters colour alone (3 features), not {x.shape[1]}")
     n = len(x)
     has = np.isfinite(v).any(1)
     idx = np.flatnonzero(has)
     if len(idx) == 0:
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
+    if full:  # the full mixture runs in float32: a covariance of pd's noise (1e-6) would lose
+        # its digits in the cofactors. BIC is unchanged (the same affine map for every K).
+        centre = np.array([np.median(x[idx][np.isfinite(v[idx, d]), d]) for d in range(3)])
+        scale = np.array([np.std(x[idx][np.isfinite(v[idx, d]), d]) for d in range(3)])
+        scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+        x, v = np.where(np.isfinite(x), (x - centre) / scale, 0.0), v / scale**2
     rng = np.random.default_rng(seed)
     fit_idx = np.sort(rng.choice(idx, size=min(sample, len(idx)), replace=False))
     xs, vs = x[fit_idx], v[fit_idx]
     n_fit, dim = xs.shape
+    params = (lambda k: k - 1 + 9 * k) if full else (lambda k: k - 1 + 2 * k * dim)  # means, (co)variances
     # A few seedings per K: k-means++ can start two components in one material, which then
     # collapse; the best likelihood of those that do not is kept. K is searched three at a
     # time and the search stops once two more components than the best did not pay.
     best, bic, k_next, done = None, {}, 1, False
     while k_next <= k_max and not done:
         ks = list(range(k_next, min(k_max, k_next + 2) + 1))
-        fits = _em_fits(xs, vs, ks, seed)
+        fits = _em_fits(xs, vs, ks, seed, full)
         for k in ks:
             if k not in fits:
                 continue
-            bic[k] = -2.0 * fits[k][0] + (k - 1 + 2 * k * dim) * np.log(n_fit)
+            bic[k] = -2.0 * fits[k][0] + params(k) * np.log(n_fit)
             if best is None or bic[k] < bic[best[0]]:
                 best = (k, fits[k])
             elif k >= best[0] + 2:  # two more components that did not pay: more will not
@@ -222,7 +240,8 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
         return Materials(np.zeros(n, np.int64), 1, {1: 0.0})
     k, (_, mu, tau2, log_w) = best
     labels = np.zeros(n, np.int64)
-    labels[idx] = np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
+    labels[idx] = colour_mixture.assign(x[idx], v[idx], mu, tau2, log_w) if full else \
+        np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
     if not has.all():
         _, j = cKDTree(positions[idx]).query(positions[~has], k=1)
         labels[~has] = labels[idx][j]
