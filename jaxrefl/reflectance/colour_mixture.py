@@ -68,10 +68,10 @@ def _pair_mask(present):
     return present[:, [i for i, _ in _PAIRS]] & present[:, [j for _, j in _PAIRS]]
 
 
-def _colour_density(x, v, mu, cov):
-    """The colour's part of `_log_density`: `(-2 log density (n, K), inverse covariances
-    (n, K, 6))` of points `x`, `v` `(n, 3)` (v inf: missing channel) under components `mu`
-    `(K, 3)`, `cov` `(K, 6)`. Each point's covariance is the component's plus its own
+def _log_density(x, v, mu, cov, log_w):
+    """Per point and component `(log density (n, K), inverse covariances (n, K, 6))` of
+    colours `x`, `v` `(n, 3)` (v inf: missing channel) under components `mu` `(K, 3)`, `cov`
+    `(K, 6)`, weights `log_w` `(K,)`. Each point's covariance is the component's plus its own
     variances; a missing channel is decoupled (unit variance, no covariance, no deviation),
     so it drops out, and its entries of the inverse are 0 (no information)."""
     present = jnp.isfinite(v)
@@ -81,14 +81,8 @@ def _colour_density(x, v, mu, cov):
     inv, logdet = _sym3_inverse(c)
     dx = jnp.where(present[:, None], x[:, None] - mu[None], 0.0)  # (n, K, 3)
     quad = jnp.sum(dx * _sym3_matvec(inv, dx), -1)
-    return quad + logdet + present.sum(1)[:, None] * float(np.log(2 * np.pi)), jnp.where(pairs, inv, 0.0)
-
-
-def _log_density(x, v, mu, cov, log_w):
-    """Per point and component `(log density (n, K), inverse covariances (n, K, 6))` of
-    colours `x`, `v` `(n, 3)` under components `mu` `(K, 3)`, `cov` `(K, 6)`, weights `log_w`."""
-    colour, inv = _colour_density(x, v, mu, cov)
-    return log_w[None] - 0.5 * colour, inv
+    minus2 = quad + logdet + present.sum(1)[:, None] * float(np.log(2 * np.pi))
+    return log_w[None] - 0.5 * minus2, jnp.where(pairs, inv, 0.0)
 
 
 @partial(jax.jit, static_argnames=("iterations",))
@@ -139,8 +133,8 @@ def em_batch(x, v, weight, resp, active, iterations=100):
             ll, previous, it, collapsed = state[5:]
             return (it < iterations) & ~collapsed & ((it < 1) | (ll - previous >= tol * jnp.abs(ll) + 1e-9))
 
-        mu0, cov0 = jnp.zeros((k, 3), dtype), jnp.broadcast_to(eye6, (k, 6))
-        init = (resp0, mu0, jnp.full(k, -jnp.log(k), dtype), cov0, _colour_density(x, v_in, mu0, cov0)[1],
+        mu0, cov0, log_w0 = jnp.zeros((k, 3), dtype), jnp.broadcast_to(eye6, (k, 6)), jnp.full(k, -jnp.log(k), dtype)
+        init = (resp0, mu0, log_w0, cov0, _log_density(x, v_in, mu0, cov0, log_w0)[1],
                 jnp.asarray(-jnp.inf, dtype), jnp.asarray(-jnp.inf, dtype), 0, jnp.asarray(False))
         _, mu, log_w, cov, _, ll, _, _, collapsed = jax.lax.while_loop(going, step, init)
         return ll, mu, cov, log_w, collapsed
