@@ -60,16 +60,16 @@ def materials_lines(summary: dict) -> str:
     """Text for the shared prior's materials (`materials`, `material_lobes` of a summary):
     the chosen K, then one line per material: its joint lobe with standard deviations and the
     spread of its points' lobes (standard deviations; roughness's relative, from ln roughness)."""
-    def num(value, scale=1.0, root=False, unit=""):
+    def num(value, scale=1.0, root=False, unit="", digits=2):
         if value is None or not np.isfinite(value):
             return "?"
-        return f"{scale * (np.sqrt(value) if root else value):.2g}{unit}"
+        return f"{scale * (np.sqrt(value) if root else value):.{digits}g}{unit}"
 
     k = summary["materials"]
     lines = [f"prior: {k} material{'s' if k != 1 else ''} (BIC)"]
     for m, lobe in enumerate(summary.get("material_lobes", [])):
-        lines.append(f"  material {m}: {lobe['points']} points, ps {lobe['ps']:.3g} +- {num(lobe['std_ps'])}, "
-                     f"roughness {lobe['roughness']:.3g} rad +- {num(lobe['std_ln_roughness'], 100, unit='%')}; "
+        lines.append(f"  material {m}: {lobe['points']} points, ps {num(lobe['ps'], digits=3)} +- {num(lobe['std_ps'])}, "
+                     f"roughness {num(lobe['roughness'], digits=3)} rad +- {num(lobe['std_ln_roughness'], 100, unit='%')}; "
                      f"spread within it: ps {num(lobe['spread_ps'], root=True)}, "
                      f"roughness {num(lobe['spread_ln_roughness'], 100, True, '%')}"
                      + ("" if lobe.get("identifiable", True) else " (joint lobe not identifiable)"))

@@ -816,11 +816,8 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
     sd_ps = np.where(pinned, np.sqrt(np.where(mine, var_ps, post_ps)), np.inf)
     sd_rho = np.where(pinned, np.sqrt(np.where(mine, var_rho, post_rho)), np.inf)
     meta = {"materials": k, "bic": {str(key): float(b) for key, b in materials.bic.items()},
-            "material_lobes": [{"ps": float(lobes.ps[m]), "roughness": float(np.exp(lobes.rho[m])),
-                                "std_ps": float(lobes.sd_ps[m]), "std_ln_roughness": float(lobes.sd_rho[m]),
-                                "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
-                                "spread_ps": float(prior.spread_ps[m]),
-                                "spread_ln_roughness": float(prior.spread_rho[m])} for m in range(k)],
+            "material_lobes": prior_mod.lobes_meta(lobes, prior.spread_ps, prior.spread_rho,
+                                                  partial(brdf.ps_bound, "ward")),
             "points_pooled": int(pooled.sum()), "points_in_conflict_with_prior": int(conflict.sum())}
     return {"ps": ps, "rho": rho, "sd_ps": sd_ps, "sd_rho": sd_rho, "own": own, "measured": measured,
             "pooled": pooled, "labels": labels}, meta

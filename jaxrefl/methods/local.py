@@ -1042,11 +1042,8 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     params = np.where(conflict[:, None], own_params, post["params"])
     sd = np.where(conflict[:, None], own_sd, sd)
     meta = {"materials": materials.k, "bic": {str(k): float(b) for k, b in materials.bic.items()},
-            "material_lobes": [{"ps": float(lobes.ps[m]), "roughness": float(np.exp(lobes.rho[m])),
-                                "std_ps": float(lobes.sd_ps[m]), "std_ln_roughness": float(lobes.sd_rho[m]),
-                                "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
-                                "spread_ps": float(prior.spread_ps[m]), "spread_ln_roughness": float(prior.spread_rho[m])}
-                               for m in range(materials.k)]}
+            "material_lobes": prior_mod.lobes_meta(lobes, prior.spread_ps, prior.spread_rho,
+                                                      partial(brdf.ps_bound, options.model))}
     for m, entry in enumerate(meta["material_lobes"]):
         entry["samples_near_peak"] = int(near_peak[m])
         entry["neighbours"] = int(local.neighbours[m])  # 0: the whole material

@@ -54,7 +54,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from jaxrefl.reflectance import colour_mixture
 
-__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "LocalLobes", "local_lobes",
+__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "lobes_meta", "LocalLobes", "local_lobes",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
            "spread_by_evidence", "status_from_posterior", "prior_conflict", "material_totals", "weighted_rows"]
 
@@ -318,6 +318,25 @@ def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 
     if peak_samples is not None:
         ident &= np.bincount(labels, weights=np.asarray(peak_samples, np.float64), minlength=k) >= 2
     return MaterialLobes(ps, rho, sd_ps, sd_rho, points, ident)
+
+
+def lobes_meta(lobes: MaterialLobes, spread_ps, spread_rho, ps_bound) -> list[dict]:
+    """One JSON-ready dict per material: its joint lobe (`ps`, `roughness` [rad], `std_ps`,
+    `std_ln_roughness`; all None where the lobe is not identifiable and beyond the energy bound
+    `ps_bound(roughness)`: a sharp lobe no sample reached, whose fit runs to any value),
+    `points`, `identifiable`, and the within-material spreads `spread_ps`, `spread_ln_roughness`
+    `(K,)` (variances; None where unknown)."""
+    def num(value, keep=True):
+        return float(value) if keep and np.isfinite(value) else None
+
+    roughness = np.exp(lobes.rho)
+    shown = lobes.identifiable | (np.isfinite(lobes.ps) & np.isfinite(roughness)
+                                  & (lobes.ps <= ps_bound(np.where(np.isfinite(roughness), roughness, 1.0))))
+    return [{"ps": num(lobes.ps[m], shown[m]), "roughness": num(roughness[m], shown[m]),
+             "std_ps": num(lobes.sd_ps[m], shown[m]), "std_ln_roughness": num(lobes.sd_rho[m], shown[m]),
+             "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
+             "spread_ps": num(spread_ps[m]), "spread_ln_roughness": num(spread_rho[m])}
+            for m in range(len(lobes.ps))]
 
 
 @dataclass(frozen=True)
