@@ -1059,8 +1059,7 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
     fallback = np.where(prior.available[:, None], np.c_[prior.mean_ps, np.exp(prior.mean_rho)], np.nan)
     if options.material_fill and (measured | pooled).any():
         joint = np.c_[lobes.ps, np.exp(lobes.rho)]  # (K, 2)
-        lobe = np.all(np.isfinite(joint), axis=1) & (joint[:, 0] > 0) & (joint[:, 1] > 0)
-        lobe &= joint[:, 0] <= brdf.ps_bound(options.model, np.where(lobe, joint[:, 1], 1.0))
+        lobe = lobes.within_bound(partial(brdf.ps_bound, options.model)) & (joint[:, 0] > 0) & (joint[:, 1] > 0)
         shows = np.isnan(fallback[:, 0]) & lobe[materials.labels]
         fallback[shows] = joint[materials.labels[shows]]
     return {"params": params, "sd": sd, "measured": measured, "pooled": pooled,

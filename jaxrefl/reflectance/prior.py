@@ -261,6 +261,13 @@ class MaterialLobes:
     points: np.ndarray
     identifiable: np.ndarray
 
+    def within_bound(self, ps_bound) -> np.ndarray:
+        """`(K,)` bool: the joint fit is finite and its ps within the energy bound
+        `ps_bound(roughness)` of its roughness (beyond it: a sharp lobe no sample reached)."""
+        roughness = np.exp(self.rho)
+        finite = np.isfinite(self.ps) & np.isfinite(roughness)
+        return finite & (self.ps <= ps_bound(np.where(finite, roughness, 1.0)))
+
 
 def _profile(c, a, b):
     """chi^2 at the best ps >= 0 and that ps, elementwise."""
@@ -330,8 +337,7 @@ def lobes_meta(lobes: MaterialLobes, spread_ps, spread_rho, ps_bound) -> list[di
         return float(value) if keep and np.isfinite(value) else None
 
     roughness = np.exp(lobes.rho)
-    shown = lobes.identifiable | (np.isfinite(lobes.ps) & np.isfinite(roughness)
-                                  & (lobes.ps <= ps_bound(np.where(np.isfinite(roughness), roughness, 1.0))))
+    shown = lobes.identifiable | lobes.within_bound(ps_bound)
     return [{"ps": num(lobes.ps[m], shown[m]), "roughness": num(roughness[m], shown[m]),
              "std_ps": num(lobes.sd_ps[m], shown[m]), "std_ln_roughness": num(lobes.sd_rho[m], shown[m]),
              "points": int(lobes.points[m]), "identifiable": bool(lobes.identifiable[m]),
