@@ -185,6 +185,25 @@ def test_joint_fit_recovers_pd_and_lobe_and_its_information_is_the_gauss_newton_
         np.testing.assert_allclose(float(fit["var_ps"][i]), cov[3, 3], rtol=1e-6)
         np.testing.assert_allclose(float(fit["var_rho"][i]), cov[4, 4], rtol=1e-6)
         np.testing.assert_allclose(np.asarray(fit["var_pd"][i]), np.diag(cov)[:3], rtol=1e-6)
+        # The evidence's volume term: ln det of (ps, ln alpha)'s posterior precision, pd profiled
+        # out, with the samples' information over a residual scale and a prior's precisions added.
+        l_ps, l_rho, s2 = 40.0 + i, 3.0 + i, 2.5
+        precision = np.linalg.inv(cov[3:, 3:]) / s2 + np.diag([l_ps, l_rho])
+        logdet = ip._posterior_logdet(fit["ps"][i:i + 1], fit["rho"][i:i + 1], tuple(c[i:i + 1] for c in fit["coef"]),
+                                      1.0 / s2, l_ps, l_rho)
+        np.testing.assert_allclose(float(logdet[0]), np.linalg.slogdet(precision)[1], rtol=1e-6)
+    # Each row's (c0, a, b) on a roughness grid are what a material's sums add up.
+    grid = np.log(np.array([0.03, 0.1, 0.3]))
+    labels = np.arange(n) % 3
+    per_row = np.asarray(ip._row_sums(jnp.asarray(np.repeat(grid[:, None], n, 1)), fit["coef"]))  # (G, 3, N)
+    per_material = np.asarray(ip._material_reduced(fit["coef"], jnp.asarray(np.repeat(grid[:, None], 3, 1)),
+                                                   jnp.asarray(labels), jnp.ones(n), 3))
+    np.testing.assert_allclose(np.stack([per_row[..., labels == m].sum(-1) for m in range(3)], -1), per_material,
+                               rtol=1e-10)
+    b, a = per_row[:, 2], per_row[:, 1]
+    at_fit = np.asarray(ip._row_sums(jnp.asarray(np.asarray(fit["rho"])[None]), fit["coef"]))[0]
+    np.testing.assert_allclose(at_fit[2] / at_fit[1], np.asarray(fit["ps"]), rtol=1e-6)  # ps = b / a at the optimum
+    assert np.all(a > 0) and np.all(np.isfinite(b))
     prior = {"inv_s2": jnp.ones(n), "l_ps": jnp.full(n, 1e15), "m_ps": jnp.full(n, 0.3),
              "l_rho": jnp.full(n, 1e15), "m_rho": jnp.full(n, np.log(0.1))}
     ps_map, rho_map, _ = ip._map_lobes(fit["coef"], prior, fit["rho"], 30)
@@ -303,3 +322,40 @@ def test_identifiable_without_any_lobe_fit():
     empty = jnp.zeros(0)
     out = _identifiable(empty, empty, empty, empty, {"n_b": jnp.zeros(0, int), "lobe": jnp.zeros(0, bool)}, 3.0, 0.0)
     assert out.shape == (0,)
+
+
+def test_a_material_takes_the_neighbourhood_prior_only_where_its_rows_evidence_prefers_it():
+    """`_choose_prior`: a material takes the second prior (the neighbourhood lobes' field) when
+    its rows' own samples are more probable under it by more than one standard error of the
+    paired per-row differences, over the rows both priors cover; `_select_prior` then takes
+    every per-point array and the spreads of that material from it, the rest from the first."""
+    from jaxrefl.methods import inverse_photon as ip
+    from jaxrefl.reflectance.prior import LobePrior
+
+    rng = np.random.default_rng(3)
+    n, k = 60, 3
+    labels = np.repeat(np.arange(k), n // k)
+    first = {"evidence": rng.normal(0.0, 1.0, n), "avail": np.ones(n, bool)}
+    gain = np.where(labels == 0, 5.0 + rng.normal(0.0, 1.0, n),  # clearly better
+                    np.where(labels == 1, rng.normal(0.0, 3.0, n), 0.0))  # noise; no better
+    gain[(labels == 2) & (np.arange(n) % 2 == 0)] = 50.0  # better only where the first has no prior
+    first["avail"][(labels == 2) & (np.arange(n) % 2 == 0)] = False
+    rows = np.ones(n, bool)
+    second = {"evidence": first["evidence"] + gain, "avail": np.ones(n, bool)}
+    chosen = ip._choose_prior(first, second, labels, rows, k)
+    np.testing.assert_array_equal(chosen, [True, False, False])
+    # Rows the second prior was not computed on count for neither.
+    only = labels != 0
+    chosen = ip._choose_prior(first, {key: v[only] for key, v in second.items()}, labels, only, k)
+    np.testing.assert_array_equal(chosen, [False, False, False])
+
+    def prior(v):
+        return LobePrior(*(np.full(n, v + i) for i in range(4)), np.full(n, v > 0), np.full(k, 10.0 * v),
+                         np.full(k, 20.0 * v))
+
+    both = ip._select_prior(prior(0.0), prior(1.0), np.array([True, False, False]), labels)
+    np.testing.assert_array_equal(both.mean_ps, np.where(labels == 0, 1.0, 0.0))
+    np.testing.assert_array_equal(both.var_rho, np.where(labels == 0, 4.0, 3.0))
+    np.testing.assert_array_equal(both.available, labels == 0)
+    np.testing.assert_array_equal(both.spread_ps, [10.0, 0.0, 0.0])
+    np.testing.assert_array_equal(both.spread_rho, [20.0, 0.0, 0.0])

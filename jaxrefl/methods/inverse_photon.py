@@ -93,8 +93,11 @@ interreflected light every point's lobe is fitted jointly with its pd over all i
 (pd profiled out, `_joint_row`: the alternation of steps (a) and (b) trades pd against the
 lobe slowly along their common valley, and stalls); materials are clustered by colour
 (`prior.fit_materials` on pd), each material's lobe is fitted to all its points' samples at
-once (`prior.material_lobes`; a lobe at the edge of the roughness range does not count), and
-each point takes its posterior mode under the empirical-Bayes prior (`prior.lobe_prior`;
+once (`prior.material_lobes`; a lobe at the edge of the roughness range does not count), where
+the lobe varies within a material each point's neighbourhood lobe is fitted to its nearest
+mates' samples (`prior.local_lobes`, the neighbourhood's size cross-validated, the spread
+about it by the rows' evidence: `_local_spread`), and each point takes its posterior mode
+under the empirical-Bayes prior (`prior.lobe_prior`;
 `measured` or `pooled` by `prior.status_from_posterior`, its own fit where its samples
 reject the prior). pd is taken to its fixed point under both candidates and the lobes with
 the lower image difference are kept (`meta['lobe_stage']`) (measurements:
@@ -127,6 +130,7 @@ from ..scan import checks
 from .final_gather import gather_parts, gather_rays
 from .lm import gauss_newton_1d
 from .local import (
+    _SPREADS,
     INTERPOLATED,
     MEASURED,
     POOLED,
@@ -155,6 +159,8 @@ logger = logging.getLogger(__name__)
 #: photon powers grow without limit along paths).
 PS_MAX = 1.0
 _GRID = 16
+#: Most rows a material's spread about its neighbourhood lobes is chosen on (`_local_spread`).
+_EVIDENCE_ROWS = 2000
 
 
 @dataclass(frozen=True)
@@ -348,17 +354,25 @@ def _joint_row(rho, *coef):
     return _reduced_cost(b, a, coef[12], rho, *coef[13:])
 
 
+def _joint_info(ps, rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, p, r, b1, inv11):
+    """One row's Gauss-Newton information of `(ps, rho)` at `(ps, rho)`, pd profiled out (unit
+    noise): `(i_pp, i_pr, i_rr)`, and `(s12, d12)` `(3,)`, pd's cross terms with ps and rho."""
+    k, dk = jax.jvp(lambda x: brdf.ward_specular(1.0, x, ci, co, th), (rho,), (jnp.ones_like(rho),))
+    s12, d12 = k @ p + r, ps * (dk @ p)
+    i_pp = jnp.sum(k * k * b_m + k * c_m) + c_qq - jnp.sum(s12 * s12 * inv11)
+    i_pr = ps * jnp.sum(dk * (k * b_m + 0.5 * c_m)) - jnp.sum(s12 * d12 * inv11)
+    i_rr = ps * ps * jnp.sum(dk * dk * b_m) - jnp.sum(d12 * d12 * inv11)
+    return i_pp, i_pr, i_rr, s12, d12
+
+
 def _joint_information(ps, rho, coef):
     """The joint fit's pd `(N, 3)` at `(ps, rho)` and the Gauss-Newton variances (unit noise)
     of pd `(N, 3)`, ps and rho `(N,)`: the inverse of the information matrix of
     `(pd_c, ps, rho)`, through the Schur complement over pd (inf where singular)."""
 
-    def one(ps, rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, p, r, b1, inv11, c0):
-        k, dk = jax.jvp(lambda x: brdf.ward_specular(1.0, x, ci, co, th), (rho,), (jnp.ones_like(rho),))
-        s12, d12 = k @ p + r, ps * (dk @ p)
-        i_pp = jnp.sum(k * k * b_m + k * c_m) + c_qq - jnp.sum(s12 * s12 * inv11)
-        i_pr = ps * jnp.sum(dk * (k * b_m + 0.5 * c_m)) - jnp.sum(s12 * d12 * inv11)
-        i_rr = ps * ps * jnp.sum(dk * dk * b_m) - jnp.sum(d12 * d12 * inv11)
+    def one(ps, rho, *c):
+        i_pp, i_pr, i_rr, s12, d12 = _joint_info(ps, rho, *c[:12])
+        inv11, b1 = c[11], c[10]
         det = i_pp * i_rr - i_pr**2
         ok = det > 1e-12 * jnp.maximum(i_pp * i_rr, 1e-300)
         inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), jnp.inf)
@@ -370,6 +384,28 @@ def _joint_information(ps, rho, coef):
         return pd, var_pd, v_pp, v_rr
 
     return jax.vmap(one)(ps, rho, *coef)
+
+
+@jax.jit
+def _posterior_logdet(ps, rho, coef, inv_s2, l_ps, l_rho):
+    """`(N,)` ln det of each row's posterior precision of `(ps, rho)` (its samples' information
+    over its residual scale `1 / inv_s2`, plus the prior's precisions): the Laplace
+    approximation's volume term of the row's evidence."""
+    i_pp, i_pr, i_rr, _, _ = jax.vmap(_joint_info)(ps, rho, *coef[:12])
+    det = (inv_s2 * i_pp + l_ps) * (inv_s2 * i_rr + l_rho) - (inv_s2 * i_pr) ** 2
+    return jnp.log(jnp.maximum(det, 1e-300))
+
+
+@jax.jit
+def _row_sums(rho, coef):
+    """`(G, 3, n)`: each row's `(c0, a, b)` (`_joint_sums`, pd profiled out) at ln roughness
+    `rho` `(G, n)` (`prior.local_lobes`' `row_sums`)."""
+
+    def one(rr):
+        b, a = jax.vmap(_joint_sums)(rr, *coef[:12])
+        return jnp.stack([coef[12], a, b])
+
+    return jax.lax.map(one, rho)
 
 
 def _rows_minimum(row, rho0, coef, steps, starts=()):
@@ -733,13 +769,102 @@ def _material_reduced(coef, rho, labels, weights, k):
     return jax.lax.map(one, rho)
 
 
+def _posterior(coef, inv_s2, m_ps, v_ps, m_rho, v_rho, start, steps):
+    """Every row's posterior mode under a Gaussian prior (means `m_*`, variances `v_*` `(N,)`,
+    all finite) from `start` `(N,)` (`_map_lobes`) and its log evidence in the Laplace
+    approximation, `-(chi^2 / s2 + prior penalty + ln det prior covariance + ln det posterior
+    precision) / 2`: a dict of `(N,)` arrays `ps`, `rho`, `chi2` (the row's own, prior left
+    out) and `evidence`."""
+    dt = coef[0].dtype
+    terms = {key: jnp.asarray(val, dt) for key, val in (("inv_s2", inv_s2), ("l_ps", 1.0 / v_ps), ("m_ps", m_ps),
+                                                        ("l_rho", 1.0 / v_rho), ("m_rho", m_rho))}
+    ps, rho, chi2 = _map_lobes(coef, terms, jnp.asarray(start, dt), steps)
+    logdet = _posterior_logdet(ps, rho, coef, terms["inv_s2"], terms["l_ps"], terms["l_rho"])
+    ps, rho, chi2, logdet = (np.array(a, np.float64) for a in (ps, rho, chi2, logdet))
+    penalty = (ps - m_ps) ** 2 / v_ps + (rho - m_rho) ** 2 / v_rho
+    return {"ps": ps, "rho": rho, "chi2": chi2,
+            "evidence": -0.5 * (inv_s2 * chi2 + penalty + np.log(v_ps * v_rho) + logdet)}
+
+
+def _local_spread(coef, local, labels, k, inv_s2, rho0, rows, steps):
+    """Spreads `(K, 2)` (ln ps, ln roughness) of the lobe about each point's neighbourhood lobe
+    (`prior.local_lobes`) in a material whose lobe varies: those under which the `rows`' `(N,)`
+    own samples are most probable (`prior.spread_by_evidence`), each row's evidence in the
+    Laplace approximation at its posterior mode (`_map_lobes`): `-(chi^2 + prior penalty +
+    ln det prior covariance + ln det posterior precision) / 2`. 0 for the other materials
+    (`local._local_spread`, through the interreflection model), on at most `_EVIDENCE_ROWS`
+    of those rows."""
+    idx = np.flatnonzero(prior_mod.local_prior(local, labels, np.zeros((k, 2)))[4] & rows)
+    if not len(idx):
+        return np.zeros((k, 2))
+    if len(idx) > _EVIDENCE_ROWS:  # evenly spread rows: the evidence's sums need no more
+        idx = idx[np.linspace(0, len(idx) - 1, _EVIDENCE_ROWS).astype(np.int64)]
+    rows = np.zeros(len(labels), bool)
+    rows[idx] = True
+    sub = tuple(c[idx] for c in coef)
+    start = rho0[idx]
+
+    def log_evidence(spread):
+        m_ps, v_ps, m_rho, v_rho, _ = (a[idx] for a in prior_mod.local_prior(local, labels, spread))
+        out = np.zeros(len(labels))
+        out[idx] = _posterior(sub, inv_s2[idx], m_ps, v_ps, m_rho, v_rho, start, steps)["evidence"]
+        return out
+
+    spread = prior_mod.spread_by_evidence(log_evidence, labels, k, rows, _SPREADS)
+    return np.where(local.neighbours[:, None] > 0, spread, 0.0)
+
+
+def _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps):
+    """`_posterior` under `prior` (`prior.LobePrior`) on the observed rows where it is
+    available (`avail`), from the prior's mean, or the own fit where the row pins its lobe;
+    elsewhere the own fit, evidence 0."""
+    avail = prior.available & observed_any
+    one = np.ones(len(own))
+    post = _posterior(coef, inv_s2, np.where(avail, prior.mean_ps, 0.0), np.where(avail, prior.var_ps, one),
+                      np.where(avail, prior.mean_rho, 0.0), np.where(avail, prior.var_rho, one),
+                      np.where(own | ~avail, rho_own, prior.mean_rho), steps)
+    post["evidence"] = np.where(avail, post["evidence"], 0.0)
+    post["avail"] = avail
+    return post
+
+
+def _rows_of(prior, rows):
+    """`prior` (`prior.LobePrior`) at the rows `rows` `(N,)` bool only."""
+    return replace(prior, **{f: getattr(prior, f)[rows] for f in ("mean_ps", "var_ps", "mean_rho", "var_rho",
+                                                                  "available")})
+
+
+def _choose_prior(first, second, labels, rows, k) -> np.ndarray:
+    """`(K,)` bool: the materials whose rows' own samples are more probable under the `second`
+    prior (`_posterior_where` on the rows `rows` `(N,)` bool) than under the `first` (on all
+    rows), by more than one standard error of the paired per-row differences
+    (`prior._beats_by_one_se`), over the rows both priors cover."""
+    both = first["avail"][rows] & second["avail"]
+    gain = second["evidence"] - first["evidence"][rows]
+    sub = labels[rows]
+    return np.array([bool((both & (sub == m)).any()) and prior_mod._beats_by_one_se(gain[both & (sub == m)])
+                     for m in range(k)], bool)
+
+
+def _select_prior(first, second, chosen, labels):
+    """One `prior.LobePrior` of two: each material's from `second` where `chosen` `(K,)`, else
+    from `first`."""
+    pick = chosen[labels]
+    return prior_mod.LobePrior(*(np.where(pick, getattr(second, f), getattr(first, f)) for f in
+                                 ("mean_ps", "var_ps", "mean_rho", "var_rho", "available")),
+                               np.where(chosen, second.spread_ps, first.spread_ps),
+                               np.where(chosen, second.spread_rho, first.spread_rho))
+
+
 def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, options):
     """The shared reflectance prior (`jaxrefl.reflectance.prior`) on Method III's lobes, at the
     kept iterate `theta` and its interreflected light `(D, Q)`: every point's own lobe through
     the interreflection model (`_own_lobes`); materials clustered by the colour of Method III's
     pd (Method I's, interreflection left in, splits one material by its distance from a concave
     part); each material's lobe fitted to all its points' samples at once
-    (`prior.material_lobes`); the empirical-Bayes prior of every lobe (`prior.lobe_prior`);
+    (`prior.material_lobes`); each point's neighbourhood lobe where the lobe varies within a
+    material (`prior.local_lobes`, `_local_spread`); the empirical-Bayes prior of every lobe
+    (`prior.lobe_prior`);
     and every point's posterior mode (`_map_lobes`). Points whose own samples reject their
     prior keep their own fit (`prior.prior_conflict`).
 
@@ -792,18 +917,38 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
     step = grid[1] - grid[0]
     lobes = replace(lobes, identifiable=lobes.identifiable & (lobes.rho > grid[0] + step)
                     & (lobes.rho < grid[-1] - step))
+    fitted = observed_any & np.isfinite(var_ps) & np.isfinite(var_rho)
+    # Two priors: the smooth field of the points' own lobes, and (where the lobe varies within a
+    # material) of each point's neighbourhood lobe, whose joint fit also holds the samples of
+    # mates that show no highlight (own lobes are those broad enough to be seen, so their
+    # field leans broad where the lobe is sharp). Each material takes the one under which its
+    # rows' own samples are more probable (`_choose_prior`).
+    local_fit = prior_mod.local_lobes(lambda rho, rows=None: _row_sums(jnp.asarray(rho, dt), coef if rows is None
+                                      else tuple(c[rows] for c in coef)), labels, k, scan.vertices, inv_s2, grid,
+                                      ps_bound=partial(brdf.ps_bound, "ward"), min_snr=options.min_snr,
+                                      peak_samples=peak * observed_any, max_neighbours=4 * local.prior_neighbours)
+    # Materials where enough points have an identifiable neighbourhood lobe (`prior.lobe_prior`).
+    varies = np.bincount(labels, weights=prior_mod.local_prior(local_fit, labels, np.zeros((k, 2)))[4],
+                         minlength=k) >= prior_mod._MIN_SPREAD_POINTS
     prior = prior_mod.lobe_prior(ps_own, var_ps, rho_own, var_rho, own, labels, lobes, scan.vertices,
-                                 neighbours=local.prior_neighbours, fitted=observed_any & np.isfinite(var_ps)
-                                 & np.isfinite(var_rho))
+                                 neighbours=local.prior_neighbours, fitted=fitted)
+    post = _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps)
+    field = np.zeros(k, bool)
+    if varies.any():
+        spread = _local_spread(coef, local_fit, labels, k, inv_s2, rho_own, observed_any, steps)
+        second = prior_mod.lobe_prior(ps_own, var_ps, rho_own, var_rho, own, labels, lobes, scan.vertices,
+                                      neighbours=local.prior_neighbours, fitted=fitted, local=local_fit,
+                                      spread=spread, materials=varies)
+        rows = varies[labels]
+        post_second = _posterior_where(tuple(c[rows] for c in coef), _rows_of(second, rows), own[rows],
+                                       rho_own[rows], inv_s2[rows], observed_any[rows], steps)
+        field = varies & _choose_prior(post, post_second, labels, rows, k)
+        prior = _select_prior(prior, second, field, labels)
+        pick = np.flatnonzero(field[labels][rows])
+        for key in ("ps", "rho", "chi2"):
+            post[key][np.flatnonzero(rows)[pick]] = post_second[key][pick]
     avail = prior.available & observed_any
-    terms = {"inv_s2": inv_s2,
-             "l_ps": np.where(avail, 1.0 / np.where(avail, prior.var_ps, 1.0), 0.0),
-             "m_ps": np.where(avail, prior.mean_ps, 0.0),
-             "l_rho": np.where(avail, 1.0 / np.where(avail, prior.var_rho, 1.0), 0.0),
-             "m_rho": np.where(avail, prior.mean_rho, 0.0)}
-    start = np.where(own | ~avail, rho_own, prior.mean_rho)
-    ps_map, rho_map, chi2_map = (np.asarray(a, np.float64) for a in _map_lobes(
-        coef, {key: jnp.asarray(val, dt) for key, val in terms.items()}, jnp.asarray(start, dt), steps))
+    ps_map, rho_map, chi2_map = post["ps"], post["rho"], post["chi2"]
     measured, pooled = prior_mod.status_from_posterior(own, var_ps, var_rho, prior)
     conflict = prior_mod.prior_conflict(chi2_map, own_fit["chi2"], s2, avail)
     measured, pooled = (measured | (own & conflict)) & observed_any, pooled & ~conflict & observed_any
@@ -819,6 +964,9 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
             "material_lobes": prior_mod.lobes_meta(lobes, prior.spread_ps, prior.spread_rho,
                                                   partial(brdf.ps_bound, "ward")),
             "points_pooled": int(pooled.sum()), "points_in_conflict_with_prior": int(conflict.sum())}
+    for m, entry in enumerate(meta["material_lobes"]):
+        entry["neighbours"] = int(local_fit.neighbours[m])  # 0: the whole material
+        entry["prior_field"] = "neighbourhood lobes" if field[m] else "own lobes"
     return {"ps": ps, "rho": rho, "sd_ps": sd_ps, "sd_rho": sd_rho, "own": own, "measured": measured,
             "pooled": pooled, "labels": labels}, meta
 

@@ -875,7 +875,8 @@ def spread_by_evidence(log_evidence, labels, k, rows, candidates):
 
 
 def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, positions,
-               neighbours: int = 16, fitted=None, local: LocalLobes | None = None, spread=None) -> LobePrior:
+               neighbours: int = 16, fitted=None, local: LocalLobes | None = None, spread=None,
+               materials=None) -> LobePrior:
     """Empirical-Bayes prior of every point's lobe.
 
     **Arguments:** each point's own fit `ps`, `var_ps`, `rho`, `var_rho` `(N,)` and `own`
@@ -894,6 +895,9 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
     with an identifiable neighbourhood lobe, those lobes are the field the prior rests on,
     in place of the points' own: each such point's prior is its neighbourhood's lobe
     (`local_prior`), and the others take the smooth means of those lobes as above.
+
+    `materials` `(K,)` bool: the materials whose prior is wanted (default all); the others'
+    points get none (`available` False) and their spreads are inf.
     """
     n = len(ps)
     k = len(lobes.ps)
@@ -905,6 +909,8 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
     if local is not None:
         direct = local_prior(local, labels, np.zeros((k, 2)) if spread is None else spread)
     for m in range(k):
+        if materials is not None and not materials[m]:
+            continue
         members = labels == m
         mine = own & members
         fields = (ps, var_ps, rho, var_rho)
