@@ -340,14 +340,11 @@ def test_a_material_takes_the_neighbourhood_prior_only_where_its_rows_evidence_p
                     np.where(labels == 1, rng.normal(0.0, 3.0, n), 0.0))  # noise; no better
     gain[(labels == 2) & (np.arange(n) % 2 == 0)] = 50.0  # better only where the first has no prior
     first["avail"][(labels == 2) & (np.arange(n) % 2 == 0)] = False
-    rows = np.ones(n, bool)
     second = {"evidence": first["evidence"] + gain, "avail": np.ones(n, bool)}
-    chosen = ip._choose_prior(first, second, labels, rows, k)
-    np.testing.assert_array_equal(chosen, [True, False, False])
-    # Rows the second prior was not computed on count for neither.
-    only = labels != 0
-    chosen = ip._choose_prior(first, {key: v[only] for key, v in second.items()}, labels, only, k)
-    np.testing.assert_array_equal(chosen, [False, False, False])
+    np.testing.assert_array_equal(ip._choose_prior(first, second, labels, k), [True, False, False])
+    # Rows the second prior does not cover count for neither.
+    second["avail"] = labels != 0
+    np.testing.assert_array_equal(ip._choose_prior(first, second, labels, k), [False, False, False])
 
     def prior(v):
         return LobePrior(*(np.full(n, v + i) for i in range(4)), np.full(n, v > 0), np.full(k, 10.0 * v),

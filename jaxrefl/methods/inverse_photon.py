@@ -801,13 +801,16 @@ def _local_spread(coef, local, labels, k, inv_s2, rho0, rows, steps):
         idx = idx[np.linspace(0, len(idx) - 1, _EVIDENCE_ROWS).astype(np.int64)]
     rows = np.zeros(len(labels), bool)
     rows[idx] = True
-    sub = tuple(c[idx] for c in coef)
-    start = rho0[idx]
+    # Padded (with the first row again, its evidence dropped) to a multiple of 500 rows: few
+    # compiled shapes across scans.
+    padded = np.pad(idx, (0, -len(idx) % 500), mode="edge")
+    sub = tuple(c[padded] for c in coef)
+    start = rho0[padded]
 
     def log_evidence(spread):
-        m_ps, v_ps, m_rho, v_rho, _ = (a[idx] for a in prior_mod.local_prior(local, labels, spread))
+        m_ps, v_ps, m_rho, v_rho, _ = (a[padded] for a in prior_mod.local_prior(local, labels, spread))
         out = np.zeros(len(labels))
-        out[idx] = _posterior(sub, inv_s2[idx], m_ps, v_ps, m_rho, v_rho, start, steps)["evidence"]
+        out[idx] = _posterior(sub, inv_s2[padded], m_ps, v_ps, m_rho, v_rho, start, steps)["evidence"][:len(idx)]
         return out
 
     spread = prior_mod.spread_by_evidence(log_evidence, labels, k, rows, _SPREADS)
@@ -828,21 +831,14 @@ def _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps):
     return post
 
 
-def _rows_of(prior, rows):
-    """`prior` (`prior.LobePrior`) at the rows `rows` `(N,)` bool only."""
-    return replace(prior, **{f: getattr(prior, f)[rows] for f in ("mean_ps", "var_ps", "mean_rho", "var_rho",
-                                                                  "available")})
-
-
-def _choose_prior(first, second, labels, rows, k) -> np.ndarray:
+def _choose_prior(first, second, labels, k) -> np.ndarray:
     """`(K,)` bool: the materials whose rows' own samples are more probable under the `second`
-    prior (`_posterior_where` on the rows `rows` `(N,)` bool) than under the `first` (on all
-    rows), by more than one standard error of the paired per-row differences
-    (`prior._beats_by_one_se`), over the rows both priors cover."""
-    both = first["avail"][rows] & second["avail"]
-    gain = second["evidence"] - first["evidence"][rows]
-    sub = labels[rows]
-    return np.array([bool((both & (sub == m)).any()) and prior_mod._beats_by_one_se(gain[both & (sub == m)])
+    prior than under the `first` (each a `_posterior_where` result), by more than one standard
+    error of the paired per-row differences (`prior._beats_by_one_se`), over the rows both
+    priors cover."""
+    both = first["avail"] & second["avail"]
+    gain = second["evidence"] - first["evidence"]
+    return np.array([bool((both & (labels == m)).any()) and prior_mod._beats_by_one_se(gain[both & (labels == m)])
                      for m in range(k)], bool)
 
 
@@ -939,14 +935,13 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
         second = prior_mod.lobe_prior(ps_own, var_ps, rho_own, var_rho, own, labels, lobes, scan.vertices,
                                       neighbours=local.prior_neighbours, fitted=fitted, local=local_fit,
                                       spread=spread, materials=varies)
-        rows = varies[labels]
-        post_second = _posterior_where(tuple(c[rows] for c in coef), _rows_of(second, rows), own[rows],
-                                       rho_own[rows], inv_s2[rows], observed_any[rows], steps)
-        field = varies & _choose_prior(post, post_second, labels, rows, k)
+        # Every row, though only those of `varies` have this prior: one compiled shape.
+        post_second = _posterior_where(coef, second, own, rho_own, inv_s2, observed_any, steps)
+        field = varies & _choose_prior(post, post_second, labels, k)
         prior = _select_prior(prior, second, field, labels)
-        pick = np.flatnonzero(field[labels][rows])
+        pick = field[labels]
         for key in ("ps", "rho", "chi2"):
-            post[key][np.flatnonzero(rows)[pick]] = post_second[key][pick]
+            post[key][pick] = post_second[key][pick]
     avail = prior.available & observed_any
     ps_map, rho_map, chi2_map = post["ps"], post["rho"], post["chi2"]
     measured, pooled = prior_mod.status_from_posterior(own, var_ps, var_rho, prior)
