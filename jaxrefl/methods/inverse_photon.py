@@ -769,32 +769,33 @@ def _material_reduced(coef, rho, labels, weights, k):
     return jax.lax.map(one, rho)
 
 
-def _posterior(coef, inv_s2, m_ps, v_ps, m_rho, v_rho, start, steps):
+def _posterior(coef, inv_s2, m_ps, v_ps, m_rho, v_rho, start, steps, evidence=True):
     """Every row's posterior mode under a Gaussian prior (means `m_*`, variances `v_*` `(N,)`,
-    all finite) from `start` `(N,)` (`_map_lobes`) and its log evidence in the Laplace
-    approximation, `-(chi^2 / s2 + prior penalty + ln det prior covariance + ln det posterior
-    precision) / 2`: a dict of `(N,)` arrays `ps`, `rho`, `chi2` (the row's own, prior left
-    out) and `evidence`."""
+    all finite) from `start` `(N,)` (`_map_lobes`) and, with `evidence`, its log evidence in
+    the Laplace approximation, `-(chi^2 / s2 + prior penalty + ln det prior covariance + ln det
+    posterior precision) / 2`: a dict of `(N,)` arrays `ps`, `rho`, `chi2` (the row's own,
+    prior left out) and `evidence`."""
     dt = coef[0].dtype
     terms = {key: jnp.asarray(val, dt) for key, val in (("inv_s2", inv_s2), ("l_ps", 1.0 / v_ps), ("m_ps", m_ps),
                                                         ("l_rho", 1.0 / v_rho), ("m_rho", m_rho))}
     ps, rho, chi2 = _map_lobes(coef, terms, jnp.asarray(start, dt), steps)
-    logdet = _posterior_logdet(ps, rho, coef, terms["inv_s2"], terms["l_ps"], terms["l_rho"])
-    ps, rho, chi2, logdet = (np.array(a, np.float64) for a in (ps, rho, chi2, logdet))
-    penalty = (ps - m_ps) ** 2 / v_ps + (rho - m_rho) ** 2 / v_rho
-    return {"ps": ps, "rho": rho, "chi2": chi2,
-            "evidence": -0.5 * (inv_s2 * chi2 + penalty + np.log(v_ps * v_rho) + logdet)}
+    post = {key: np.array(a, np.float64) for key, a in (("ps", ps), ("rho", rho), ("chi2", chi2))}
+    if evidence:
+        logdet = np.asarray(_posterior_logdet(ps, rho, coef, terms["inv_s2"], terms["l_ps"], terms["l_rho"]),
+                            np.float64)
+        penalty = (post["ps"] - m_ps) ** 2 / v_ps + (post["rho"] - m_rho) ** 2 / v_rho
+        post["evidence"] = -0.5 * (inv_s2 * post["chi2"] + penalty + np.log(v_ps * v_rho) + logdet)
+    return post
 
 
 def _local_spread(coef, local, labels, k, inv_s2, rho0, rows, steps):
     """Spreads `(K, 2)` (ln ps, ln roughness) of the lobe about each point's neighbourhood lobe
-    (`prior.local_lobes`) in a material whose lobe varies: those under which the `rows`' `(N,)`
-    own samples are most probable (`prior.spread_by_evidence`), each row's evidence in the
-    Laplace approximation at its posterior mode (`_map_lobes`): `-(chi^2 + prior penalty +
-    ln det prior covariance + ln det posterior precision) / 2`. 0 for the other materials
-    (`local._local_spread`, through the interreflection model), on at most `_EVIDENCE_ROWS`
-    of those rows."""
-    idx = np.flatnonzero(prior_mod.local_prior(local, labels, np.zeros((k, 2)))[4] & rows)
+    (`prior.local_lobes`) in a material whose lobe varies: those under which the own samples
+    of the `rows` `(N,)` bool (observed, with an identifiable neighbourhood lobe; at most
+    `_EVIDENCE_ROWS` of them) are most probable (`prior.spread_by_evidence` of `_posterior`'s
+    evidence). 0 for the other materials (`local._local_spread`, through the interreflection
+    model)."""
+    idx = np.flatnonzero(rows)
     if not len(idx):
         return np.zeros((k, 2))
     if len(idx) > _EVIDENCE_ROWS:  # evenly spread rows: the evidence's sums need no more
@@ -817,7 +818,7 @@ def _local_spread(coef, local, labels, k, inv_s2, rho0, rows, steps):
     return np.where(local.neighbours[:, None] > 0, spread, 0.0)
 
 
-def _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps):
+def _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps, evidence=True):
     """`_posterior` under `prior` (`prior.LobePrior`) on the observed rows where it is
     available (`avail`), from the prior's mean, or the own fit where the row pins its lobe;
     elsewhere the own fit, evidence 0."""
@@ -825,8 +826,9 @@ def _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps):
     one = np.ones(len(own))
     post = _posterior(coef, inv_s2, np.where(avail, prior.mean_ps, 0.0), np.where(avail, prior.var_ps, one),
                       np.where(avail, prior.mean_rho, 0.0), np.where(avail, prior.var_rho, one),
-                      np.where(own | ~avail, rho_own, prior.mean_rho), steps)
-    post["evidence"] = np.where(avail, post["evidence"], 0.0)
+                      np.where(own | ~avail, rho_own, prior.mean_rho), steps, evidence)
+    if evidence:
+        post["evidence"] = np.where(avail, post["evidence"], 0.0)
     post["avail"] = avail
     return post
 
@@ -924,14 +926,14 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
                                       ps_bound=partial(brdf.ps_bound, "ward"), min_snr=options.min_snr,
                                       peak_samples=peak * observed_any, max_neighbours=4 * local.prior_neighbours)
     # Materials where enough points have an identifiable neighbourhood lobe (`prior.lobe_prior`).
-    varies = np.bincount(labels, weights=prior_mod.local_prior(local_fit, labels, np.zeros((k, 2)))[4],
-                         minlength=k) >= prior_mod._MIN_SPREAD_POINTS
+    field_rows = prior_mod.local_prior(local_fit, labels, np.zeros((k, 2)))[4]
+    varies = np.bincount(labels, weights=field_rows, minlength=k) >= prior_mod._MIN_SPREAD_POINTS
     prior = prior_mod.lobe_prior(ps_own, var_ps, rho_own, var_rho, own, labels, lobes, scan.vertices,
                                  neighbours=local.prior_neighbours, fitted=fitted)
-    post = _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps)
+    post = _posterior_where(coef, prior, own, rho_own, inv_s2, observed_any, steps, evidence=varies.any())
     field = np.zeros(k, bool)
     if varies.any():
-        spread = _local_spread(coef, local_fit, labels, k, inv_s2, rho_own, observed_any, steps)
+        spread = _local_spread(coef, local_fit, labels, k, inv_s2, rho_own, field_rows & observed_any, steps)
         second = prior_mod.lobe_prior(ps_own, var_ps, rho_own, var_rho, own, labels, lobes, scan.vertices,
                                       neighbours=local.prior_neighbours, fitted=fitted, local=local_fit,
                                       spread=spread, materials=varies)
