@@ -1015,8 +1015,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     """Method III on a scan with radiance (see the module docstring).
 
     **Returns:** `Estimate` (model 'ward') with `meta['method'] == 'photon'`;
-    `meta['image_difference']` per iteration (`cost` Eq. 14 noise-weighted,
-    `mean_abs` [W/(sr m^2)]), `meta['best_iteration']`, re-traces, effective
+    `meta['image_difference']` per iteration (`cost` Eq. 14 noise-weighted through the photons
+    of that iteration, `mean_abs` [W/(sr m^2)]; `best` the best iterate's cost through the last
+    photons), `meta['best_iteration']`, re-traces, effective
     sample sizes and seconds per stage; `meta['misfit']` where the scan has Ward ground
     truth (`_misfit`). `progress(done, total)` is called after
     every block of iterations when given.
@@ -1072,6 +1073,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     costs, mads, retraces, ess_log = [], [], [], []
     timings["iterations"] = 0.0
     done = 0
+    best_iteration, best_cost = 0, np.inf  # `best` on the host, in the current photons' costs
     while done < options.iterations:
         n_iter = min(options.check_every, options.iterations - done)
         t0 = time.perf_counter()
@@ -1079,6 +1081,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         theta, best, track, (c, m) = _block(replay.data, replay.static, index, fg, rows, lobe_rows, nbr, theta, best,
                                             track, n_iter, options.solver, options.steps, options.damping,
                                             options.min_snr, options.min_fit_p, fill_target, affinity)
+        for i, cost in enumerate(np.asarray(c).tolist()):
+            if cost < best_cost:
+                best_iteration, best_cost = done + i, cost
         costs += np.asarray(c).tolist()
         mads += np.asarray(m).tolist()
         done += n_iter
@@ -1095,6 +1100,11 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                                         seed=options.seed + 1 + len(retraces))
                 retraces.append({"iteration": done, "ess": ess, "seconds": time.perf_counter() - t0})
                 track = _track(track[0], options.damping, rows["y"].shape, dt)  # costs of the new photons
+                # The best so far, in the new photons' costs too: image differences through two
+                # photon sets differ by their Monte Carlo noise (tens of per cent in a cavity), so
+                # an old cost would outbid every later iterate or none.
+                best_cost = float(_final(replay.data, replay.static, index, fg, rows, best[0])["cost"])
+                best = (best[0], jnp.asarray(best_cost, dt))
                 timings["trace"] += retraces[-1]["seconds"]
 
     t0 = time.perf_counter()
@@ -1102,8 +1112,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     costs.append(float(last["cost"]))
     mads.append(float(last["mad"]))
     if float(last["cost"]) < float(best[1]):
-        best = (theta, last["cost"])
-    best_iteration = int(np.argmin(costs))
+        best, best_iteration = (theta, last["cost"]), len(costs) - 1
     fin = fin_best = _final(replay.data, replay.static, index, fg, rows, best[0])
     pd, ps, rho = (np.array(x, np.float64) for x in best[0])
     observed_any = use.any(1)
@@ -1217,7 +1226,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "method": "photon", "model": "ward",
         "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in asdict(options).items()},
         "seconds": timings,
-        "image_difference": {"cost": costs, "mean_abs": mads},
+        "image_difference": {"cost": costs, "mean_abs": mads, "best": float(fin_best["cost"])},
         "best_iteration": best_iteration,
         "retraces": retraces, "ess": ess_log, "method_warnings": method_warnings,
         "photons_per_configuration": photons, "light_configurations": n_cfg,

@@ -752,6 +752,7 @@ class PhotonReplay:
             splat = gather.Splat(*(x[paths.bounce[splat.photon] > 1] for x in splat))
         level = gather.choose_levels(kernel, splat, paths.power.mean(axis=1), m, target_photons)
         inv_area = 1.0 / np.maximum(np.take_along_axis(kernel.area.T, level, axis=1), 1e-300)
+        inv_area = inv_area * gather.linear_correction(kernel, splat, paths.power.mean(axis=1), m, level, v, nrm)
         to_cam = cam - v[:, None, :]
         facing = np.einsum("nmi,ni->nm", to_cam, nrm) > 0
         pp, offsets, new_index = _padded_paths(paths)
