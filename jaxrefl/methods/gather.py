@@ -207,6 +207,12 @@ def splat_geometry(vertices, faces, normals, cam_pos, face, bary, direction, lig
     )
 
 
+def _splatted_flux(splat: Splat, power, n: int, n_lights: int):
+    """`(N, M)` level-0 sums of the splat weights times `|power|` `(P,)`, and of their squares."""
+    w = splat.w_diffuse * np.abs(np.asarray(power))[splat.photon]
+    return tuple(np.bincount(splat.row, v, minlength=n * n_lights).reshape(n, n_lights) for v in (w, w * w))
+
+
 def choose_levels(kernel: MeshKernel, splat: Splat, power, n_lights: int, target: float) -> np.ndarray:
     """`(N, M)` int smoothing level per (vertex, light): the smallest whose
     predicted effective count of photons reaches `target` (else the largest), at most the
@@ -220,10 +226,7 @@ def choose_levels(kernel: MeshKernel, splat: Splat, power, n_lights: int, target
 
     **Arguments:** `power` `(P,)` scalar proposal power of each photon."""
     n = len(kernel.neighbours)
-    size = n * n_lights
-    w = splat.w_diffuse * np.abs(power)[splat.photon]
-    k1 = np.bincount(splat.row, w, minlength=size).reshape(n, n_lights)
-    k2 = np.bincount(splat.row, w * w, minlength=size).reshape(n, n_lights)
+    k1, k2 = _splatted_flux(splat, power, n, n_lights)
     top = kernel.area.shape[0] - 1
     for _ in range(top):
         k1, k2 = kernel.matrix @ k1, kernel.matrix @ k2
@@ -270,8 +273,7 @@ def linear_correction(kernel: MeshKernel, splat: Splat, power, n_lights: int, le
     is bounded to `[1/2, 2]` (`_LINEAR_BOUND`) and is 1 where the kernel holds no photon."""
     n = len(kernel.neighbours)
     level = np.asarray(level)
-    w = splat.w_diffuse * np.abs(np.asarray(power))[splat.photon]
-    x = np.bincount(splat.row, w, minlength=n * n_lights).reshape(n, n_lights)
+    x = _splatted_flux(splat, power, n, n_lights)[0]
     pos = np.asarray(vertices, np.float64)
     pos = pos - pos.mean(axis=0)
     frames = _tangent_frames(normals)

@@ -750,9 +750,10 @@ class PhotonReplay:
         splat = gather.splat_geometry(v, f, nrm, cam, paths.face, paths.bary, paths.direction, paths.light)
         if not first_bounce:  # the photons stay (parents of deeper ones) but gather no light
             splat = gather.Splat(*(x[paths.bounce[splat.photon] > 1] for x in splat))
-        level = gather.choose_levels(kernel, splat, paths.power.mean(axis=1), m, target_photons)
+        power = paths.power.mean(axis=1)
+        level = gather.choose_levels(kernel, splat, power, m, target_photons)
         inv_area = 1.0 / np.maximum(np.take_along_axis(kernel.area.T, level, axis=1), 1e-300)
-        inv_area = inv_area * gather.linear_correction(kernel, splat, paths.power.mean(axis=1), m, level, v, nrm)
+        inv_area = inv_area * gather.linear_correction(kernel, splat, power, m, level, v, nrm)
         to_cam = cam - v[:, None, :]
         facing = np.einsum("nmi,ni->nm", to_cam, nrm) > 0
         pp, offsets, new_index = _padded_paths(paths)
