@@ -100,6 +100,46 @@ def test_step_a_samples_follow_whose_lobe_it_is():
     assert np.array_equal(paper[has_diff], diffuse[has_diff]) and np.array_equal(paper[~has_diff], use[~has_diff])
 
 
+def test_step_a_under_the_pd_prior_is_the_posterior_mode():
+    """With the pd prior, step (a) is the minimum of the image difference over its samples
+    plus `precision (pd - mean)^2` (closed form, here checked by the objective's gradient);
+    a `fixed` channel takes the prior's mean, a zero precision leaves the plain step."""
+    import jax
+
+    from jaxrefl.methods.inverse_photon import _image_difference, _step_a
+
+    rng = np.random.default_rng(3)
+    n, m = 6, 8
+    rows = dict(y=jnp.asarray(rng.uniform(0.05, 0.3, (n, m, 3))), e=jnp.asarray(rng.uniform(0.5, 1.5, (n, m))),
+                cos_i=jnp.asarray(rng.uniform(0.3, 1.0, (n, m))), cos_o=jnp.asarray(rng.uniform(0.3, 1.0, (n, m))),
+                theta_r=jnp.asarray(rng.uniform(0.0, 0.8, (n, m))), use=jnp.ones((n, m), bool),
+                w2=jnp.asarray(rng.uniform(50.0, 200.0, (n, m, 3))))
+    rows["a"] = rows["use"]
+    d, q = (jnp.asarray(rng.uniform(0.0, 0.1, (n, m, 3))) for _ in range(2))
+    pd0, ps, rho = jnp.full((n, 3), 0.5), jnp.asarray(rng.uniform(0.0, 0.05, n)), jnp.full(n, np.log(0.2))
+    mean = jnp.asarray(rng.uniform(0.3, 0.6, (n, 3)))
+    precision = jnp.asarray(rng.uniform(10.0, 500.0, (n, 3))).at[0].set(0.0)
+    fixed = jnp.zeros((n, 3), bool).at[1, 2].set(True)
+
+    pd, den = _step_a(pd0, ps, rho, rows, d, q, (mean, precision, fixed))
+    plain, den_plain = _step_a(pd0, ps, rho, rows, d, q)
+    assert np.array_equal(den, den_plain)
+    assert np.all((pd > 0) & (pd < 1)) and np.all((plain > 0) & (plain < 1))  # no clipping here
+    assert np.allclose(pd[0], plain[0], rtol=1e-12) and float(pd[1, 2]) == float(mean[1, 2])
+    free = ~np.asarray(fixed)
+    assert np.all(np.abs(np.asarray(pd - plain))[1:][free[1:]] > 1e-4)  # the prior moved them
+
+    def objective(p):
+        return _image_difference(p, ps, rho, rows, d, q)[0] + jnp.sum(precision * (p - mean) ** 2)
+
+    grad = np.asarray(jax.grad(objective)(pd))
+    scale = np.asarray(den + precision) * 1e-9
+    assert np.all(np.abs(grad[free]) <= scale[free])
+    # Between the point's own least-squares pd and the prior's mean.
+    lo, hi = np.minimum(plain, mean), np.maximum(plain, mean)
+    assert np.all((np.asarray(pd) >= lo - 1e-12) & (np.asarray(pd) <= hi + 1e-12))
+
+
 def test_estimate_explains_the_images_as_well_as_the_truth(convex_photon):
     """Convergence checked, not assumed: through the same forward model (direct light, photon
     replay) the image difference at Method III's estimate is within 10 % of that at the truth

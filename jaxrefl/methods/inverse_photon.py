@@ -103,6 +103,14 @@ reject the prior). pd is taken to its fixed point under both candidates and the 
 the lower image difference are kept (`meta['lobe_stage']`) (measurements:
 `benchmarks/RESULTS_rigs_gi.md`).
 
+**pd prior** (Method I's `prior.diffuse_prior` over the kept materials): the polish is run
+once more with each step (a) the posterior mode under it and the backtracking on the image
+difference plus the prior's cost: pd's MAP through the interreflection. Applied to the
+polished pd afterwards, the pulls (each within its point's noise) add up in a cavity's
+interreflected light; and an image-difference test of the result rejects even the truth's
+pd where the forward model's own error is common to a point's samples, which the
+per-point pd absorbs (measurements: `benchmarks/RESULTS_notes.md`).
+
 Per-point lights (a rotating scanner, `light_pos` `(N, M, 3)`) are binned into
 light configurations as Method II (`radiosity.light_configs`, `light_bin`);
 each configuration gets `photons * M / C` photons.
@@ -247,9 +255,11 @@ def _image_difference(pd, ps, rho, r, d, q):
     return jnp.sum(r["w2"] * diff**2), jnp.sum(jnp.abs(diff)) / n
 
 
-def _step_a(pd, ps, rho, r, d, q):
+def _step_a(pd, ps, rho, r, d, q, prior=None):
     """pd `(N, 3)` by least squares over the step (a) samples, and its information
-    `sum w^2 (E + D)^2` `(N, 3)` (0 where the point has no sample)."""
+    `sum w^2 (E + D)^2` `(N, 3)` (0 where the point has no sample). With `prior`
+    `(mean, precision, fixed)` `(N, 3)` each: the posterior mode under a Gaussian prior of
+    that precision (in the image difference's units; 0: none), the mean itself where `fixed`."""
     k = _lobe_rows(rho, r["cos_i"], r["cos_o"], r["theta_r"])
     e = r["e"][..., None]
     a = r["a"][..., None]
@@ -257,8 +267,15 @@ def _step_a(pd, ps, rho, r, d, q):
     s = r["y"] - ps[:, None, None] * (e * k[..., None] + q)
     num = jnp.sum(jnp.where(a, r["w2"] * x * s, 0.0), axis=1)
     den = jnp.sum(jnp.where(a, r["w2"] * x * x, 0.0), axis=1)
-    ok = den > 0
-    new = jnp.where(ok, num / jnp.where(ok, den, 1.0), pd)
+    if prior is not None:
+        mean, precision, fixed = prior
+        num, tot = num + precision * mean, den + precision
+    else:
+        tot = den
+    ok = tot > 0
+    new = jnp.where(ok, num / jnp.where(ok, tot, 1.0), pd)
+    if prior is not None:
+        new = jnp.where(fixed, mean, new)
     return jnp.clip(new, 0.0, 1.0), den
 
 
@@ -672,25 +689,33 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_
 
 
 @partial(jax.jit, static_argnames=("static", "n_iter"))
-def _polish(data, static, index, fg, rows, theta, n_iter):
+def _polish(data, static, index, fg, rows, theta, n_iter, prior=None):
     """`n_iter` steps (a) at the final lobes: `pd` to the fixed point of its own
     interreflection, undamped where that lowers the image difference (the interreflected
     share of the light below 1), with `_block`'s backtracking where it does not (a cavity
-    of high albedo). Returns `theta` at the lowest image difference met."""
+    of high albedo). Returns `theta` at the lowest image difference met. With `prior`
+    (`_step_a`'s) the steps take the posterior mode and the cost adds the prior's
+    `sum precision (pd - mean)^2`: pd's MAP through the interreflection, where each point's
+    pull to its material-mates also changes the light its neighbours receive."""
     _, ps, rho = theta
+
+    def objective(pd, d, q):
+        cost, _ = _image_difference(pd, ps, rho, rows, d, q)
+        if prior is not None:
+            mean, precision, fixed = prior
+            cost = cost + jnp.sum(jnp.where(fixed, 0.0, precision * (pd - mean) ** 2))
+        return cost
 
     def body(carry, _):
         pd, anchor = carry
         d, q = _parts(data, static, index, fg, pd, ps, rho)
-        cost, _ = _image_difference(pd, ps, rho, rows, d, q)
-        anchor, (pd_from, (d, q)) = _line_search(anchor, pd, (d, q), cost, 1.0)
-        return (pd_from + anchor[3] * (_step_a(pd_from, ps, rho, rows, d, q)[0] - pd_from), anchor), None
+        anchor, (pd_from, (d, q)) = _line_search(anchor, pd, (d, q), objective(pd, d, q), 1.0)
+        return (pd_from + anchor[3] * (_step_a(pd_from, ps, rho, rows, d, q, prior)[0] - pd_from), anchor), None
 
     start = _track(theta[0], 1.0, rows["y"].shape, rows["y"].dtype)
     (pd, (best, _, cost, _)), _ = jax.lax.scan(body, (theta[0], start), None, length=n_iter)
     d, q = _parts(data, static, index, fg, pd, ps, rho)
-    last, _ = _image_difference(pd, ps, rho, rows, d, q)
-    return jnp.where(last < cost, pd, best), ps, rho
+    return jnp.where(objective(pd, d, q) < cost, pd, best), ps, rho
 
 
 @partial(jax.jit, static_argnames=("static",))
@@ -1199,22 +1224,25 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         std_alpha = np.where(known, alpha * np.where(known, sd_rho, 0.0), np.inf)
         # pd, as Method I's, shares evidence with its material-mates (the prior's materials). Here
         # each point's pd also lights the others: in a cavity of high albedo the prior's pulls,
-        # each within its point's noise, add up in the interreflected light. The prior stays only
-        # if the images allow it: the image difference may rise by at most one unit of the
-        # residual variance per pd value (what pulls within the noise cost).
+        # each within its point's noise, add up in the interreflected light. So the prior enters
+        # step (a) itself (pd's MAP through the interreflection, `_polish`), not its result.
         if labels is not None:
-            kept = pd.copy(), std_pd.copy()
-            _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
             before = float(fin["cost"])
-            after = _image_cost(replay, index, fg, rows, pd, ps, alpha, dt)
-            s2 = max(1.0, before / max(3.0 * float(use.sum()), 1.0))
-            allowed = before + 3.0 * float(observed_any.sum()) * s2
-            prior_meta["pd_prior_image_difference"] = {"without": before, "with": after, "allowed": allowed}
-            if not after <= allowed:
-                pd[:], std_pd[:] = kept
-                method_warnings.append(f"the pd prior raised Method III's image difference from {before:.4g} to "
-                                       f"{after:.4g} (allowed {allowed:.4g}): each point keeps its own pd")
-                logger.warning(method_warnings[-1])
+            diffuse = _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
+            on = (observed_any & diffuse.available)[:, None] & np.isfinite(diffuse.var)
+            scale = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
+            fixed = on & dark
+            precision = np.where(on & ~fixed, scale / np.where(on, diffuse.var, 1.0), 0.0)
+            prior = tuple(jnp.asarray(x) for x in (np.where(on, diffuse.mean, 0.0).astype(dt), precision.astype(dt),
+                                                    fixed))
+            theta_p = _polish(replay.data, replay.static, index, fg, rows,
+                              tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(alpha))), options.polish, prior)
+            fin_p = _final(replay.data, replay.static, index, fg, rows, theta_p)
+            pd = np.array(theta_p[0], np.float64)
+            info = np.asarray(fin_p["info_pd"], np.float64) / scale
+            std_pd = np.where(fixed, np.sqrt(np.where(on, diffuse.var, 1.0)),
+                              np.where(on, 1.0 / np.sqrt(info + 1.0 / np.where(on, diffuse.var, 1.0)), std_pd))
+            prior_meta["pd_prior_image_difference"] = {"without": before, "with": float(fin_p["cost"])}
         # Unobserved points keep the pd the images were explained with (their start's, filled by
         # Method I): their light reaches the observed points, and in a cavity of high albedo a
         # window fill from the iterations' per-point pd would change the images it returns.

@@ -909,12 +909,13 @@ def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int,
     std_pd[~observed_any] = np.inf
 
 
-def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) -> None:
+def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta):
     """In place: each observed point's pd (given its lobe, as the stages before left it) with
     the empirical-Bayes prior of its material-mates' pd field (`prior.diffuse_prior`, built
     from those same estimates); the lobes stay as they are. A `dark` `(N, 3)` channel (every
     sample quantised to 0) has no estimate of its own: it takes the prior. `meta` gets the
-    counts, and each of its `material_lobes` entries (where it has them) its pd spread."""
+    counts, and each of its `material_lobes` entries (where it has them) its pd spread.
+    Returns the prior (`prior.DiffusePrior`)."""
     std_pd[dark] = np.inf
     diffuse = prior_mod.diffuse_prior(pd, std_pd**2, observed_any, labels, scan.vertices,
                                       neighbours=options.prior_neighbours, k=len(meta.get("material_lobes", [])))
@@ -925,6 +926,7 @@ def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta) 
         entry["pd_neighbours"] = int(diffuse.neighbours[m])  # 0: the whole material
     meta["points_with_diffuse_prior"] = int((observed_any & diffuse.available).sum())
     meta["points_in_conflict_with_diffuse_prior"] = int(diffuse.conflict.sum())
+    return diffuse
 
 
 def dark_channels(rows) -> np.ndarray:
