@@ -993,10 +993,16 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
             "pooled": pooled, "labels": labels}, meta
 
 
+def _pd_scale(fin, dof):
+    """`(N, 1)` variance scale of step (a)'s pd at `_final`'s `fin`: the reduced chi^2 of the
+    lobe fit where above 1."""
+    return np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
+
+
 def _pd_std(fin, dof):
     """`(N, 3)` standard deviation of step (a)'s pd at `_final`'s `fin`: its information, the
-    variance scaled by the reduced chi^2 of the lobe fit where above 1 (inf: no sample)."""
-    scale = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
+    variance scaled by `_pd_scale` (inf: no sample)."""
+    scale = _pd_scale(fin, dof)
     info = np.asarray(fin["info_pd"], np.float64)
     return np.where(info > 0, np.sqrt(scale / np.where(info > 0, info, 1.0)), np.inf)
 
@@ -1229,8 +1235,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         if labels is not None:
             before = float(fin["cost"])
             diffuse = _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
-            on = (observed_any & diffuse.available)[:, None] & np.isfinite(diffuse.var)
-            scale = np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
+            on = np.broadcast_to((observed_any & diffuse.available)[:, None], pd.shape)  # var finite there
+            scale = _pd_scale(fin, dof)
             fixed = on & dark
             precision = np.where(on & ~fixed, scale / np.where(on, diffuse.var, 1.0), 0.0)
             prior = tuple(jnp.asarray(x) for x in (np.where(on, diffuse.mean, 0.0).astype(dt), precision.astype(dt),
