@@ -191,3 +191,40 @@ def test_cli_holdout(tmp_path):
         assert not (tmp_path / "bad.npz").exists()
     both = jaxrefl("estimate", scan, "--out", tmp_path / "bad.npz", "--holdout", 0.2, "--holdout-lights", 1)
     assert both.returncode == 2 and "holdout" in both.stderr
+
+
+def test_indirect_observations_is_the_per_configuration_relight():
+    """All observations' interreflection at once (one radiosity solve over the light configurations;
+    one photon map and one final gather) against relighting each configuration / light on its own."""
+    from jaxrefl.methods import final_gather
+    from jaxrefl.methods.radiosity import light_configs
+
+    scanner = make_scan("E", resolution=16, setup="glossy", rig="scanner", lights=V_LIGHTS[:6], seed=0)[0]
+    _, test = ho.split_scan(scanner, [1, 4])  # per-point lights: 2 lights in many configurations
+    est, caster = rl.truth_estimate(scanner), RayCaster(scanner.vertices, scanner.faces)
+    use = test.observed()
+    together = rl.indirect_observations("radiosity", test, est, use, caster)
+    cfg = light_configs(test.light_pos, test.n_points)
+    assert len(cfg.positions) > 2 * test.n_lights
+    alone = np.zeros_like(together)
+    for c, (pos, j) in enumerate(zip(cfg.positions, cfg.light)):
+        rows = cfg.index[:, j] == c
+        alone[rows, j] = rl.indirect("radiosity", scanner.vertices, scanner.faces, scanner.normals, est, pos,
+                                     float(test.intensities()[j]), scanner.cam_pos)[rows]
+    assert together.max() > 0
+    np.testing.assert_allclose(together, alone, rtol=1e-5, atol=1e-7 * together.max())
+
+    fold = make_scan("E", resolution=16, setup="glossy", model="ward", lights=[23, 26, 33, 36], seed=0)[0]
+    _, test = ho.split_scan(fold, [0, 3])  # fixed lights, a pinhole camera: one configuration per light
+    est, caster = rl.truth_estimate(fold), RayCaster(fold.vertices, fold.faces)
+    use = test.observed()
+    settings = {"n_photons": 200_000, "rays": 256}
+    together = rl.indirect_observations("photon", test, est, use, caster, settings)
+    for j in range(test.n_lights):
+        alone = final_gather.relight_indirect(fold.vertices, fold.faces, fold.normals, est.pd, est.ps,
+                                              est.roughness, test.light_pos[j], test.intensities()[j], fold.cam_pos,
+                                              n_photons=200_000, seed=1, caster=caster)
+        a, b = together[use[:, j], j].mean(-1), alone[use[:, j]].mean(-1)
+        assert a.sum() > 0 and abs(a.sum() / b.sum() - 1) < 0.03  # two Monte Carlo estimates of one quantity
+        assert np.corrcoef(a, b)[0, 1] > 0.95
+    assert np.all(together[~use] >= 0)

@@ -48,8 +48,9 @@ from ..geometry.raycast import RayCaster
 from ..reflectance import brdf
 from .gather import _EXP_CAP
 from .photon import PhotonReplay, _chunked, _interp, _vdot, _vhalf_angle, _vnormalize, lobe_share, sample_mixture
+from .radiosity import config_cameras, light_configs
 
-__all__ = ["GatherRays", "gather_rays", "gather_parts", "relight_indirect"]
+__all__ = ["GatherRays", "gather_rays", "gather_parts", "relight_indirect", "relight_observations"]
 
 #: Rays per batch of the host loop (bounds the memory of one Embree call).
 _BATCH = 1_000_000
@@ -241,6 +242,47 @@ def relight_indirect(vertices, faces, normals, pd, ps, alpha, light_pos, intensi
     return out
 
 
+def _proposal(pd, ps, alpha):
+    """Gather directions drawn from the reflectance relit: its lobe needs a roughness > 0
+    (where ps = 0 it is not sampled anyway)."""
+    return np.clip(pd, 0.0, None), np.clip(ps, 0.0, None), np.clip(np.where(alpha > 0, alpha, 0.1), 0.005, 1.0)
+
+
+def relight_observations(scan, pd, ps, alpha, observed, caster=None, *, light_bin: float = 0.1,
+                         n_photons: int = 1_000_000, target_photons: float = 256.0, rays: int = 1024,
+                         ray_budget: int = 8_000_000, seed: int = 0) -> np.ndarray:
+    """Interreflected radiance `(N, M, 3)` [W/(sr m^2)] of every observation of `scan`
+    (its lights, intensities and cameras; `light_pos` `(M, 3)` or per point `(N, M, 3)`)
+    for Ward reflectance `pd` `(N, 3)`, `ps` `(N,)`, `alpha` `(N,)` [rad], as Method III
+    models its own observations: one photon map over the light configurations
+    (`radiosity.light_configs` with `light_bin`, `n_photons` per light shared by its
+    configurations) for the later bounces, one final gather of `rays` per `observed`
+    `(N, M)` observation (halved while over `ray_budget` rays in all) for the first.
+    Observations not in `observed` carry only the photon map's part."""
+    n, m = scan.n_points, scan.n_lights
+    observed = np.asarray(observed, bool)
+    if observed.shape != (n, m):
+        raise ValueError(f"observed: expected ({n}, {m}), got {observed.shape}")
+    params = tuple(np.asarray(x, dtype=np.float64) for x in (pd, ps, alpha))
+    caster = caster if caster is not None else RayCaster(scan.vertices, scan.faces)
+    configs = light_configs(scan.light_pos, n, light_bin)
+    photons = int(max(1000, round(n_photons * m / len(configs.positions))))
+    replay = PhotonReplay.build(caster, scan.vertices, scan.faces, scan.normals, configs.positions,
+                                scan.intensities()[configs.light], config_cameras(scan, configs), params,
+                                n_photons=photons, target_photons=target_photons, seed=seed,
+                                first_bounce=rays == 0)
+    out = np.take_along_axis(np.asarray(replay.indirect(*params), np.float64), configs.index[..., None], axis=1)
+    rays = int(rays)
+    while rays > 1 and rays * int(observed.sum()) > ray_budget:
+        rays //= 2
+    if rays and observed.any():
+        g = gather_rays(caster, scan.normals, scan.camera_positions(), scan.light_positions(), scan.intensities(),
+                        _proposal(*params), observed, rays, seed=seed)
+        d, q = (np.asarray(x, np.float64) for x in gather_parts(g, *params, n, m))
+        out = out + params[0][:, None, :] / np.pi * d + params[1][:, None, None] * q
+    return out
+
+
 def _relight_first_bounce(caster, replay, params, light, intensity, rays, seed):
     """First-bounce radiance `(N, 3)` toward each vertex's camera (`relight_indirect`),
     gathered in blocks of vertices of at most `_RELIGHT_GATHER_RAYS` rays."""
@@ -249,8 +291,7 @@ def _relight_first_bounce(caster, replay, params, light, intensity, rays, seed):
     cam = np.broadcast_to(s["cam_pos"], (n, 1, 3))
     lights = np.broadcast_to(light.reshape(1, 1, 3), (n, 1, 3))
     pd, ps, alpha = params
-    # The proposal's lobe needs a roughness > 0 (where ps = 0 it is not sampled anyway).
-    proposal = (np.clip(pd, 0.0, None), np.clip(ps, 0.0, None), np.clip(np.where(alpha > 0, alpha, 0.1), 0.005, 1.0))
+    proposal = _proposal(pd, ps, alpha)
     facing = np.asarray(replay.data.facing)[:, 0]
     todo = np.flatnonzero(facing)
     out = np.zeros((n, 3))

@@ -63,7 +63,7 @@ from .local import LocalOptions, estimate_local, prepare_rows, quantisation_step
 
 __all__ = ["RadiosityOptions", "LightConfigs", "light_configs", "direct_irradiance", "solve_radiosity",
            "first_bounce_correction", "inverse_radiosity", "restrict_configs", "estimate_radiosity",
-           "relight_indirect"]
+           "relight_indirect", "relight_observations"]
 
 _HOST_WORK = 1 << 20  # nonzeros x columns above which a product is split over threads
 _CONFIG_STEP = 16  # light configurations are padded to a multiple of this (fewer compilations)
@@ -194,6 +194,23 @@ def relight_indirect(vertices, faces, normals, pd, light_pos, intensity, *, rays
     e = direct_irradiance(caster, normals, np.reshape(light_pos, (1, 3)), np.reshape(intensity, (1,)))
     b, _ = solve_radiosity(ff, pd, e)
     return np.asarray(pd) * (ff.matrix @ b[:, 0]) / np.pi
+
+
+def relight_observations(scan, pd, *, light_bin: float = 0.1, rays: int = 256,
+                         caster: RayCaster | None = None) -> np.ndarray:
+    """Interreflected diffuse radiance `(N, M, 3)` [W/m^2/sr] of every observation of
+    `scan` (its lights and intensities; `light_pos` `(M, 3)` or per point `(N, M, 3)`,
+    binned into configurations by `light_configs` with `light_bin`) for albedo `pd`
+    `(N, 3)`: `relight_indirect` for all configurations in one solve."""
+    caster = caster or RayCaster(scan.vertices, scan.faces)
+    configs = light_configs(scan.light_pos, scan.n_points, light_bin)
+    ff = form_factors(scan.vertices, scan.faces, scan.normals, rays=rays, caster=caster)
+    e = direct_irradiance(caster, scan.normals, configs.positions, scan.intensities()[configs.light])
+    b, _ = solve_radiosity(ff, pd, e)
+    n, c = e.shape
+    fb = np.asarray(ff.matrix @ np.asarray(b, np.float64).reshape(n, c * 3)).reshape(n, c, 3)
+    fb = np.take_along_axis(fb, configs.index[..., None], axis=1)
+    return np.asarray(pd, np.float64)[:, None, :] * fb / np.pi
 
 
 # -- light configurations ---------------------------------------------------------------------------

@@ -29,7 +29,7 @@ import numpy as np
 from ..geometry.raycast import RayCaster
 from . import relight as rl
 
-__all__ = ["choose_holdout", "split_scan", "gi_model", "holdout_error", "truth_holdout_error",
+__all__ = ["choose_holdout", "split_scan", "gi_model", "relight_settings", "holdout_error", "truth_holdout_error",
            "evaluate_holdout", "estimate_with_holdout"]
 
 
@@ -143,8 +143,27 @@ def gi_model(est) -> str:
     return "none"
 
 
-def _predict(est, scan, caster, gi):
-    """Predicted radiance `(N, H, 3)` of `est` for every observation of `scan`."""
+#: Relighting settings read from a result's `meta['options']` (Method II's or III's), by the
+#: keyword `relight.indirect_observations` passes on.
+_SETTINGS = {"radiosity": {"light_bin": "light_bin", "rays": "rays"},
+             "photon": {"light_bin": "light_bin", "photons": "n_photons", "target_photons": "target_photons",
+                        "gather_rays": "rays", "gather_budget": "ray_budget", "seed": "seed"}}
+
+
+def relight_settings(est, gi) -> dict:
+    """The interreflection settings `est` was fitted with (its `meta['options']`), for
+    relighting it under `gi` as its method modelled its own observations (the
+    defaults where it holds none, e.g. a truth or an `auto` result)."""
+    options = est.meta.get("options") if isinstance(est.meta, dict) else None
+    options = options if isinstance(options, dict) else {}
+    if est.meta.get("method") not in ("radiosity", "photon"):
+        options = {k: v for k, v in options.items() if k == "light_bin"}
+    return {arg: options[key] for key, arg in _SETTINGS.get(gi, {}).items() if options.get(key) is not None}
+
+
+def _predict(est, scan, caster, gi, use, settings):
+    """Predicted radiance `(N, H, 3)` of `est` for every observation of `scan`; the
+    interreflection of the `use` `(N, H)` observations from one `relight.indirect_observations`."""
     n, m = scan.n_points, scan.n_lights
     y = scan.intensities()
     per_point_light, per_obs_cam = scan.light_pos.ndim == 3, scan.cam_pos.ndim != 1
@@ -155,16 +174,7 @@ def _predict(est, scan, caster, gi):
         cam = np.ascontiguousarray(cams[:, j]) if per_obs_cam else scan.cam_pos
         out[:, j] = rl.direct_radiance(scan.vertices, scan.normals, est, light, y[j], cam, caster)
     if gi != "none":
-        from ..methods.radiosity import light_configs
-
-        options = est.meta.get("options")
-        light_bin = options.get("light_bin") if isinstance(options, dict) else None
-        cfg = light_configs(scan.light_pos, n, float(light_bin) if light_bin else 0.1)  # as the fit binned them
-        for c, (pos, j) in enumerate(zip(cfg.positions, cfg.light)):
-            rows = cfg.index[:, j] == c
-            cam = np.ascontiguousarray(cams[:, j]) if per_obs_cam else scan.cam_pos
-            extra = rl.indirect(gi, scan.vertices, scan.faces, scan.normals, est, pos, float(y[j]), cam)
-            out[rows, j] += extra[rows]
+        out += rl.indirect_observations(gi, scan, est, use, caster, settings)
     return out
 
 
@@ -173,13 +183,14 @@ def _empty(lights, gi, reason):
             "per_light_rel_rms": [None] * len(lights), "per_light_samples": [0] * len(lights), "reason": reason}
 
 
-def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "auto") -> dict:
+def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "auto",
+                  settings: dict | None = None) -> dict:
     """Error of `est` relit under the observations of `test_scan` against their radiance.
 
     **Arguments:** `est` an `Estimate` of `test_scan`'s mesh; `test_scan` a scan with
     radiance (usually `split_scan(...)[1]`); `caster` its `RayCaster`; `gi` one of
     `relight.GI_MODELS` or 'auto' (`gi_model(est)`: interreflections as the method
-    modelled them).
+    modelled them); `settings` the interreflection's (`relight_settings(est, gi)` when None).
 
     **Returns:** a JSON-ready dict: `lights` (indices into the original scan),
     `gi`, `rel_rms`, `median_rel` (module docstring), `samples`,
@@ -202,12 +213,13 @@ def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "au
     if not use.any():
         return _empty(lights, gi, "no held-out sample is observed (valid, unsaturated), lit and seen by its camera")
     note = None
+    settings = relight_settings(est, gi) if settings is None else settings
     try:
-        pred = _predict(est, test_scan, caster, gi)
+        pred = _predict(est, test_scan, caster, gi, use, settings)
     except ImportError as exc:  # the interreflection module is missing: direct light only
         note = f"{gi} interreflection unavailable ({exc}); direct light only"
         gi = "none"
-        pred = _predict(est, test_scan, caster, gi)
+        pred = _predict(est, test_scan, caster, gi, use, settings)
     obs = np.asarray(test_scan.radiance, dtype=np.float64)
     d2 = np.where(use[..., None], (pred - obs) ** 2, 0.0).sum(axis=-1)    # (N, H)
     o2 = np.where(use[..., None], obs**2, 0.0).sum(axis=-1)
@@ -229,9 +241,10 @@ def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "au
     return out
 
 
-def truth_holdout_error(test_scan, caster: RayCaster | None = None, gi: str = "none") -> dict:
+def truth_holdout_error(test_scan, caster: RayCaster | None = None, gi: str = "none",
+                        settings: dict | None = None) -> dict:
     """`holdout_error` of the scan's own ground truth (`relight.truth_estimate`):
-    the error floor its noise and the forward model `gi` allow. Without truth (or
+    the error floor its noise and the forward model `gi` (with `settings`) allow. Without truth (or
     when `gi` cannot relight the truth's model) `rel_rms` is None and `reason` says why."""
     try:
         truth = rl.truth_estimate(test_scan)
@@ -239,7 +252,7 @@ def truth_holdout_error(test_scan, caster: RayCaster | None = None, gi: str = "n
         lights = [int(i) for i in test_scan.meta.get("holdout", {}).get("lights", range(test_scan.n_lights))]
         return _empty(lights, gi, str(exc))
     try:
-        return holdout_error(truth, test_scan, caster, gi)
+        return holdout_error(truth, test_scan, caster, gi, settings)
     except ValueError as exc:  # e.g. photon relighting of a Torrance-Sparrow truth
         lights = [int(i) for i in test_scan.meta.get("holdout", {}).get("lights", range(test_scan.n_lights))]
         return _empty(lights, gi, str(exc))
@@ -248,7 +261,8 @@ def truth_holdout_error(test_scan, caster: RayCaster | None = None, gi: str = "n
 def evaluate_holdout(est, test_scan, caster: RayCaster | None = None, gi: str = "auto", truth: bool = True) -> dict:
     """`holdout_error(est, test_scan, caster, gi)` stored in `est.meta['holdout']` (and
     returned), with the fitted lights (`fit_lights`, from `split_scan`) and, with `truth`
-    and ground truth in the scan, the floor `truth_holdout_error` under `['truth']`."""
+    and ground truth in the scan, the floor `truth_holdout_error` under `['truth']` (relit
+    with `est`'s interreflection settings)."""
     t0 = time.perf_counter()
     caster = caster or RayCaster(test_scan.vertices, test_scan.faces)
     result = holdout_error(est, test_scan, caster, gi)
@@ -256,7 +270,7 @@ def evaluate_holdout(est, test_scan, caster: RayCaster | None = None, gi: str = 
     if fit_lights is not None:
         result["fit_lights"] = fit_lights
     if truth and test_scan.true_pd is not None:
-        floor = truth_holdout_error(test_scan, caster, result["gi"])
+        floor = truth_holdout_error(test_scan, caster, result["gi"], relight_settings(est, result["gi"]))
         result["truth"] = {k: v for k, v in floor.items() if k != "lights"}
     est.meta["holdout"] = result
     seconds = est.meta.get("seconds")

@@ -27,7 +27,9 @@ import numpy as np
 from ..geometry.raycast import RayCaster
 from ..geometry.rig import PinholeCamera, observation_geometry
 from ..methods.final_gather import relight_indirect as photon_indirect
+from ..methods.final_gather import relight_observations as photon_observations
 from ..methods.radiosity import relight_indirect as radiosity_indirect
+from ..methods.radiosity import relight_observations as radiosity_observations
 from ..reflectance import brdf
 from ..result import Estimate
 from . import render
@@ -36,6 +38,7 @@ from .render import fit_camera, scan_camera  # cameras live with the pictures; r
 __all__ = [
     "GI_MODELS",
     "indirect",
+    "indirect_observations",
     "direct_radiance",
     "relight",
     "relight_image",
@@ -70,6 +73,35 @@ def indirect(model_gi, vertices, faces, normals, est: Estimate, light_pos, inten
         bad = int(np.count_nonzero(~np.isfinite(out)))
         raise ValueError(f"model-gi: {model_gi} relighting returned {out.shape} "
                          f"with {bad} non-finite value(s), want ({n}, 3)")
+    return out
+
+
+def indirect_observations(model_gi, scan, est: Estimate, observed, caster: RayCaster | None = None,
+                          settings: dict | None = None) -> np.ndarray:
+    """Interreflected radiance `(N, M, 3)` of every observation of `scan` (its own lights
+    and cameras) as the method `model_gi` models its observations: `indirect` for all
+    of them at once, the lights binned into configurations (`radiosity.light_configs`)
+    and, for 'photon', one photon map over them and one final gather of the
+    `observed` `(N, M)` observations. `settings`: keyword arguments of
+    `radiosity.relight_observations` / `final_gather.relight_observations`."""
+    n, m = scan.n_points, scan.n_lights
+    if model_gi not in GI_MODELS:
+        raise ValueError(f"model-gi: must be one of {', '.join(GI_MODELS)}, got {model_gi!r}")
+    settings = dict(settings or {})
+    if model_gi == "none":
+        return np.zeros((n, m, 3))
+    if model_gi == "radiosity":
+        out = radiosity_observations(scan, est.pd, caster=caster, **settings)
+    else:
+        if est.model != "ward":
+            raise ValueError(f"model-gi: photon relighting needs a Ward result, this one is {est.model!r} "
+                             "(estimate with --model ward, or use --model-gi radiosity)")
+        out = photon_observations(scan, est.pd, est.ps, est.roughness, observed, caster, **settings)
+    out = np.asarray(out, dtype=np.float64)
+    if out.shape != (n, m, 3) or not np.all(np.isfinite(out)):
+        bad = int(np.count_nonzero(~np.isfinite(out)))
+        raise ValueError(f"model-gi: {model_gi} relighting returned {out.shape} "
+                         f"with {bad} non-finite value(s), want ({n}, {m}, 3)")
     return out
 
 
