@@ -153,6 +153,9 @@ def test_batches_state_the_monte_carlo_error(plates):
         b = np.asarray(rep.indirect_batches(*params, batches=8))
         if seed == 0:
             np.testing.assert_allclose(b.mean(0), np.asarray(rep.indirect(*params)), rtol=1e-4, atol=1e-9)
+            var = np.asarray(rep.indirect_variance(*params, batches=8))  # the same groups, one at a time
+            assert var.shape == b.shape[1:] and var.max() > 0
+            np.testing.assert_allclose(var, b.var(0, ddof=1) / 8, rtol=2e-3, atol=1e-6 * var.max())
         r = b[:, region, 0, 0].mean(1)
         means.append(r.mean())
         stated.append(r.std(ddof=1) / np.sqrt(8))

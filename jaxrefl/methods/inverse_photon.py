@@ -597,6 +597,9 @@ def _parts(data, static, index, fg, pd, ps, rho):
     return d + dg.astype(d.dtype), q + qg.astype(q.dtype)
 
 
+#: Photon groups the photon map's Monte Carlo variance is estimated from (`PhotonReplay.indirect_variance`).
+_MAP_BATCHES = 16
+
 #: A step that raises the image difference above this multiple of the lowest one so far
 #: overshot (a cavity of high albedo swings by orders of magnitude; a converging
 #: alternation wanders within a few per cent of its best, and must be let wander).
@@ -1144,6 +1147,13 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     mads.append(float(last["mad"]))
     if float(last["cost"]) < float(best[1]):
         best, best_iteration = (theta, last["cost"]), len(costs) - 1
+    # The photon map's Monte Carlo error joins each sample's noise from here on: a sample lit by
+    # one stray photon of a sharp lobe's path (tens of times its noise) would otherwise pull a
+    # whole material's lobe in the fits below.
+    var_map = _to_obs(replay.indirect_variance(best[0][0], best[0][1], jnp.exp(best[0][2]), _MAP_BATCHES), index)
+    over = np.asarray(var_map * rows["w2"], np.float64).mean(-1) > 1.0  # the map's error above the noise
+    map_dominated = float(over[use].mean()) if use.any() else 0.0
+    rows = dict(rows, w2=rows["w2"] / (1.0 + rows["w2"] * var_map.astype(dt)))
     fin = fin_best = _final(replay.data, replay.static, index, fg, rows, best[0])
     pd, ps, rho = (np.array(x, np.float64) for x in best[0])
     observed_any = use.any(1)
@@ -1265,7 +1275,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "retraces": retraces, "ess": ess_log, "method_warnings": method_warnings,
         "photons_per_configuration": photons, "light_configurations": n_cfg,
         "stored_photons": int(replay.n_photons),
-        "gather_rays_per_observation": n_rays, "gather_entries": 0 if fg is None else int(fg.row.shape[0]),
+        "gather_rays_per_observation": n_rays,
+        "photon_map_variance_dominated": map_dominated, "gather_entries": 0 if fg is None else int(fg.row.shape[0]),
         "quantisation_step": q_step,
         "lobe_stage": {"image_difference": lobe_costs, "kept": pick["name"] if candidates else None},
         "points_with_observations": int(observed_any.sum()),

@@ -556,18 +556,34 @@ def _parts_jit(data: _Data, real, power, alpha, static: _Static):
     return jnp.where(data.facing[..., None], d, 0.0), jnp.where(data.facing[..., None], q, 0.0)
 
 
+def _batch_radiance(data: _Data, power, pd, ps, alpha, static: _Static, b, batches: int):
+    """`indirect` from the emitted photons of group `b` of `batches` (a split fixed
+    before tracing), scaled to the full count."""
+    group = data.path % batches
+    d, q = _parts_from_powers(data, jnp.where((group == b)[None, :], power * batches, 0.0), alpha, static)
+    rad = pd[:, None, :] / jnp.pi * d + ps[:, None, None] * q
+    return jnp.where(data.facing[..., None], rad, 0.0)
+
+
 @partial(jax.jit, static_argnames=("static", "batches"))
 def _indirect_batches(data: _Data, pd, ps, alpha, static: _Static, batches: int):
     pd, ps, alpha = _params(data, pd, ps, alpha)
     power = _powers(data, pd, ps, alpha, static)
-    group = data.path % batches  # a split of the emitted photons fixed before tracing
+    return jax.lax.map(lambda b: _batch_radiance(data, power, pd, ps, alpha, static, b, batches),
+                       jnp.arange(batches))
 
-    def one(b):
-        d, q = _parts_from_powers(data, jnp.where((group == b)[None, :], power * batches, 0.0), alpha, static)
-        rad = pd[:, None, :] / jnp.pi * d + ps[:, None, None] * q
-        return jnp.where(data.facing[..., None], rad, 0.0)
 
-    return jax.lax.map(one, jnp.arange(batches))
+@partial(jax.jit, static_argnames=("static", "batches"))
+def _indirect_variance(data: _Data, pd, ps, alpha, static: _Static, batches: int):
+    pd, ps, alpha = _params(data, pd, ps, alpha)
+    power = _powers(data, pd, ps, alpha, static)
+    full = _indirect(data, pd, ps, alpha, static)  # the batches' mean, exactly
+
+    def add(b, acc):  # about the mean, not sum x^2 - n mean^2: no cancellation in float32
+        return acc + (_batch_radiance(data, power, pd, ps, alpha, static, b, batches) - full) ** 2
+
+    acc = jax.lax.fori_loop(0, batches, add, jnp.zeros_like(full))
+    return acc / (batches * (batches - 1))
 
 
 @partial(jax.jit, static_argnames="static")
@@ -806,6 +822,14 @@ class PhotonReplay:
         if batches < 2:
             raise ValueError(f"batches must be >= 2, got {batches}")
         return _indirect_batches(self.data, pd, ps, alpha, self.static, int(batches))
+
+    def indirect_variance(self, pd, ps, alpha, batches: int = 16):
+        """`(N, M, 3)` Monte Carlo variance [(W/(sr m^2))^2] of `indirect` (given the
+        smoothing levels), from the spread of its `batches` disjoint photon groups as in
+        `indirect_batches`, accumulated one group at a time (memory of one `indirect`)."""
+        if batches < 2:
+            raise ValueError(f"batches must be >= 2, got {batches}")
+        return _indirect_variance(self.data, pd, ps, alpha, self.static, int(batches))
 
     def ess(self, pd, ps, alpha):
         """`(M,)` effective sample size of each light's photons under the given
