@@ -271,6 +271,30 @@ def test_diffuse_prior_leaves_a_detail_its_neighbours_do_not_share():
     assert np.median(np.abs(post - true)[rest]) < 0.5 * np.median(np.abs(own - true)[rest])
 
 
+def test_diffuse_prior_tests_conflict_with_the_noise_not_the_misfit():
+    """The dot again, but the model fits its samples badly, so its (scaled) variance is wide:
+    tested with that variance its pd looks compatible with the material's and the prior takes
+    it over; tested with the noise's variance (`var_test`) it conflicts and keeps its own."""
+    pos, rng = _sphere(1500, 4)
+    true = np.full((1500, 3), 0.6)
+    dot = np.argsort(np.linalg.norm(pos - pos[0], axis=1))[:6]
+    true[dot] = 0.2
+    sd = 0.01 * true
+    own = true + sd * rng.standard_normal(true.shape)
+    var = sd**2
+    var[dot] *= 1e4  # a reduced chi^2 of 10^4: the model misses their light
+    loose = prior.diffuse_prior(own, var, np.ones(1500, bool), np.zeros(1500, int), pos)
+    tested = prior.diffuse_prior(own, var, np.ones(1500, bool), np.zeros(1500, int), pos, var_test=sd**2)
+    assert loose.available[dot].all() and not loose.conflict[dot].any()
+    assert tested.conflict[dot].all() and not tested.available[dot].any()
+    rest = np.ones(1500, bool)
+    rest[dot] = False
+    np.testing.assert_array_equal(tested.available[rest], loose.available[rest])
+    post, std = own.copy(), np.sqrt(var)
+    prior.combine_with_prior(post, std, tested.available, tested.mean, tested.var)
+    np.testing.assert_array_equal(post[dot], own[dot])
+
+
 @pytest.mark.parametrize("model", sorted(brdf.MODELS))
 def test_specular_albedo_limits(model):
     narrow = brdf.specular_albedo(model, np.array([1e-3]))

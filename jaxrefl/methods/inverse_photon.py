@@ -1153,7 +1153,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     var_map = _to_obs(replay.indirect_variance(best[0][0], best[0][1], jnp.exp(best[0][2]), _MAP_BATCHES), index)
     over = np.asarray(var_map * rows["w2"], np.float64).mean(-1) > 1.0  # the map's error above the noise
     map_dominated = float(over[use].mean()) if use.any() else 0.0
-    rows = dict(rows, w2=rows["w2"] / (1.0 + rows["w2"] * var_map.astype(dt)))
+    noise_rows, rows = rows, dict(rows, w2=rows["w2"] / (1.0 + rows["w2"] * var_map.astype(dt)))
     fin = fin_best = _final(replay.data, replay.static, index, fg, rows, best[0])
     pd, ps, rho = (np.array(x, np.float64) for x in best[0])
     observed_any = use.any(1)
@@ -1244,7 +1244,12 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         # step (a) itself (pd's MAP through the interreflection, `_polish`), not its result.
         if labels is not None:
             before = float(fin["cost"])
-            diffuse = _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta)
+            # Its conflict test with the noise's variance alone: a point the model fits badly has a
+            # wide scaled std, and would be handed to its material's pd however far its data are.
+            info = np.asarray(fin["info_pd"], np.float64)
+            var_noise = np.where(info > 0, 1.0 / np.where(info > 0, info, 1.0), np.inf)
+            diffuse = _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta,
+                                     var_test=var_noise)
             on = np.broadcast_to((observed_any & diffuse.available)[:, None], pd.shape)  # var finite there
             scale = _pd_scale(fin, dof)
             fixed = on & dark
@@ -1265,7 +1270,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, options.window, keep_values=True)
     timings["fill"] = time.perf_counter() - t0
     finite_outputs((pd, ps, alpha), (std_pd, std_ps, std_alpha))
-    misfit = _misfit(scan, replay, index, fg, rows, (pd, ps, alpha), dt)
+    misfit = _misfit(scan, replay, index, fg, noise_rows, (pd, ps, alpha), dt)  # Eq. 14 as documented
     meta = {
         "method": "photon", "model": "ward",
         "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in asdict(options).items()},

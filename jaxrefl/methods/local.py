@@ -909,16 +909,20 @@ def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int,
     std_pd[~observed_any] = np.inf
 
 
-def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta):
+def _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options, meta, var_test=None):
     """In place: each observed point's pd (given its lobe, as the stages before left it) with
     the empirical-Bayes prior of its material-mates' pd field (`prior.diffuse_prior`, built
-    from those same estimates); the lobes stay as they are. A `dark` `(N, 3)` channel (every
+    from those same estimates; `var_test` its conflict test's variances); the lobes stay as
+    they are. A `dark` `(N, 3)` channel (every
     sample quantised to 0) has no estimate of its own: it takes the prior. `meta` gets the
     counts, and each of its `material_lobes` entries (where it has them) its pd spread.
     Returns the prior (`prior.DiffusePrior`)."""
     std_pd[dark] = np.inf
+    if var_test is not None:
+        var_test = np.where(dark, np.inf, var_test)
     diffuse = prior_mod.diffuse_prior(pd, std_pd**2, observed_any, labels, scan.vertices,
-                                      neighbours=options.prior_neighbours, k=len(meta.get("material_lobes", [])))
+                                      neighbours=options.prior_neighbours, k=len(meta.get("material_lobes", [])),
+                                      var_test=var_test)
     prior_mod.combine_with_prior(pd, std_pd, observed_any & diffuse.available, diffuse.mean, diffuse.var)
     np.clip(pd, 0.0, 1.0, out=pd)  # the fit's bounds
     for m, entry in enumerate(meta.get("material_lobes", [])):

@@ -974,7 +974,8 @@ class DiffusePrior:
     neighbours: np.ndarray
 
 
-def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16, k: int | None = None) -> DiffusePrior:
+def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16, k: int | None = None,
+                  var_test=None) -> DiffusePrior:
     """Empirical-Bayes prior of every point's diffuse albedo, per material and channel, as
     `lobe_prior` builds it for a lobe from the points' own fits: the precision-weighted mean
     of the nearest material-mates' pd (`neighbours` of them, the point left out, or a local
@@ -988,7 +989,10 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16, k:
 
     **Arguments:** `pd`, `var_pd` `(N, 3)` each point's own fit and its variance; `known`
     `(N,)` bool the points with an own fit; `labels` `(N,)` materials; `positions` `(N, 3)`;
-    `k` the number of materials (default `labels.max() + 1`; a material may have no point).
+    `k` the number of materials (default `labels.max() + 1`; a material may have no point);
+    `var_test` `(N, 3)` the variance the conflict test takes for each point's own pd (default
+    `var_pd`; the noise's alone where `var_pd` is inflated by the model's misfit, which would
+    otherwise hand a point its data contradict to the prior).
     """
     pd, var_pd = np.asarray(pd, np.float64), np.asarray(var_pd, np.float64)
     n = len(pd)
@@ -1020,9 +1024,10 @@ def diffuse_prior(pd, var_pd, known, labels, positions, neighbours: int = 16, k:
         for c, (mu, mu_var, spread) in enumerate(fields[chosen[m]]):
             mean[at, c], var[at, c] = mu[at], np.maximum(mu_var[at] + spread[at], _VAR_FLOOR)
             spreads[m, c] = float(np.median(spread[at]))
+    var_test = var_pd if var_test is None else np.asarray(var_test, np.float64)
     available = np.all(np.isfinite(var), axis=1)
-    tested = available & known
-    chi = np.sum((pd - mean) ** 2 / (np.where(tested[:, None], var_pd, 1.0) + var), axis=1)
+    tested = available & known & np.all(np.isfinite(var_test), axis=1)
+    chi = np.sum((pd - mean) ** 2 / (np.where(tested[:, None], var_test, 1.0) + var), axis=1)
     threshold = chi2_dist.isf(_CONFLICT_ALPHA / max(int(tested.sum()), 1), 3)
     conflict = tested & (chi > threshold)
     available &= ~conflict
