@@ -252,16 +252,22 @@ def test_a_material_without_points_gets_a_pd_entry_not_a_crash():
     json.dumps(meta, allow_nan=False)
 
 
-def test_diffuse_prior_leaves_a_detail_its_neighbours_do_not_share():
-    """A few points of a uniform material carry a printed dot (pd 0.2 instead of 0.6): their
-    own pd contradicts the prior (or the spread their neighbours show widens it), so they
-    keep it, and the rest of the material is still pulled together."""
+def _dotted_sphere():
+    """1500 points of a uniform material (pd 0.6) with a printed dot of 6 (pd 0.2), each
+    point's own pd with 1 % noise: positions, truth, the dot, the noise sd and the own pd."""
     pos, rng = _sphere(1500, 4)
     true = np.full((1500, 3), 0.6)
     dot = np.argsort(np.linalg.norm(pos - pos[0], axis=1))[:6]
     true[dot] = 0.2
     sd = 0.01 * true
-    own = true + sd * rng.standard_normal(true.shape)
+    return pos, true, dot, sd, true + sd * rng.standard_normal(true.shape)
+
+
+def test_diffuse_prior_leaves_a_detail_its_neighbours_do_not_share():
+    """A few points of a uniform material carry a printed dot (pd 0.2 instead of 0.6): their
+    own pd contradicts the prior (or the spread their neighbours show widens it), so they
+    keep it, and the rest of the material is still pulled together."""
+    pos, true, dot, sd, own = _dotted_sphere()
     d = prior.diffuse_prior(own, sd**2, np.ones(1500, bool), np.zeros(1500, int), pos)
     post, std = own.copy(), sd.copy()
     prior.combine_with_prior(post, std, d.available, d.mean, d.var)
@@ -275,12 +281,7 @@ def test_diffuse_prior_tests_conflict_with_the_noise_not_the_misfit():
     """The dot again, but the model fits its samples badly, so its (scaled) variance is wide:
     tested with that variance its pd looks compatible with the material's and the prior takes
     it over; tested with the noise's variance (`var_test`) it conflicts and keeps its own."""
-    pos, rng = _sphere(1500, 4)
-    true = np.full((1500, 3), 0.6)
-    dot = np.argsort(np.linalg.norm(pos - pos[0], axis=1))[:6]
-    true[dot] = 0.2
-    sd = 0.01 * true
-    own = true + sd * rng.standard_normal(true.shape)
+    pos, true, dot, sd, own = _dotted_sphere()
     var = sd**2
     var[dot] *= 1e4  # a reduced chi^2 of 10^4: the model misses their light
     loose = prior.diffuse_prior(own, var, np.ones(1500, bool), np.zeros(1500, int), pos)
