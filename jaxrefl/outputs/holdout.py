@@ -3,7 +3,8 @@
 The lights of a scan are split in two (`choose_holdout`, `split_scan`): the
 estimate is fitted on the rest and then relit under the held-out lights, seen
 from their cameras (`relight.direct_radiance` with Embree shadows, plus
-`relight.indirect` for Methods II and III), and compared with the radiance the
+`relight.indirect_observations` for Methods II and III: all held-out observations'
+interreflection at once, with the settings the estimate was fitted with), and compared with the radiance the
 camera recorded there (`holdout_error`). On photographs this is the accuracy
 figure a user has; on a scan with ground truth, `truth_holdout_error` gives the
 same figure for the true reflectance: the floor that the data's noise (and the
