@@ -1244,8 +1244,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         # step (a) itself (pd's MAP through the interreflection, `_polish`), not its result.
         if labels is not None:
             before = float(fin["cost"])
-            # Its conflict test with the noise's variance alone: a point the model fits badly has a
-            # wide scaled std, and would be handed to its material's pd however far its data are.
+            # Its conflict test with the samples' own variance (noise and the photon map's error), not
+            # the misfit-scaled one: a point the model fits badly has a wide scaled std, and would be
+            # handed to its material's pd however far its data are.
             info = np.asarray(fin["info_pd"], np.float64)
             var_noise = np.where(info > 0, 1.0 / np.where(info > 0, info, 1.0), np.inf)
             diffuse = _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta,
