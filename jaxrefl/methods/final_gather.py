@@ -50,7 +50,8 @@ from .gather import _EXP_CAP
 from .photon import PhotonReplay, _chunked, _interp, _vdot, _vhalf_angle, _vnormalize, lobe_share, sample_mixture
 from .radiosity import config_cameras, light_configs
 
-__all__ = ["GatherRays", "gather_rays", "gather_parts", "relight_indirect", "relight_observations"]
+__all__ = ["GatherRays", "gather_rays", "gather_parts", "rays_within_budget", "photons_per_configuration",
+           "relight_indirect", "relight_observations"]
 
 #: Rays per batch of the host loop (bounds the memory of one Embree call).
 _BATCH = 1_000_000
@@ -242,6 +243,20 @@ def relight_indirect(vertices, faces, normals, pd, ps, alpha, light_pos, intensi
     return out
 
 
+def rays_within_budget(rays: int, observations: int, budget: int) -> int:
+    """`rays` per observation halved until `observations` of them fit in `budget` rays (at least 1)."""
+    rays = int(rays)
+    while rays > 1 and rays * int(observations) > budget:
+        rays //= 2
+    return rays
+
+
+def photons_per_configuration(photons: int, n_lights: int, n_configs: int) -> int:
+    """Photons each of `n_configs` light configurations gets when each of the `n_lights`
+    lights has `photons` to share among its configurations (at least 1000)."""
+    return int(max(1000, round(photons * n_lights / n_configs)))
+
+
 def _proposal(pd, ps, alpha):
     """Gather directions drawn from the reflectance relit: its lobe needs a roughness > 0
     (where ps = 0 it is not sampled anyway)."""
@@ -266,15 +281,12 @@ def relight_observations(scan, pd, ps, alpha, observed, caster=None, *, light_bi
     params = tuple(np.asarray(x, dtype=np.float64) for x in (pd, ps, alpha))
     caster = caster if caster is not None else RayCaster(scan.vertices, scan.faces)
     configs = light_configs(scan.light_pos, n, light_bin)
-    photons = int(max(1000, round(n_photons * m / len(configs.positions))))
     replay = PhotonReplay.build(caster, scan.vertices, scan.faces, scan.normals, configs.positions,
                                 scan.intensities()[configs.light], config_cameras(scan, configs), params,
-                                n_photons=photons, target_photons=target_photons, seed=seed,
+                                n_photons=photons_per_configuration(n_photons, m, len(configs.positions)), target_photons=target_photons, seed=seed,
                                 first_bounce=rays == 0)
     out = np.take_along_axis(np.asarray(replay.indirect(*params), np.float64), configs.index[..., None], axis=1)
-    rays = int(rays)
-    while rays > 1 and rays * int(observed.sum()) > ray_budget:
-        rays //= 2
+    rays = rays_within_budget(rays, observed.sum(), ray_budget) if rays else 0
     if rays and observed.any():
         g = gather_rays(caster, scan.normals, scan.camera_positions(), scan.light_positions(), scan.intensities(),
                         _proposal(*params), observed, rays, seed=seed)

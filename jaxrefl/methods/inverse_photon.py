@@ -135,7 +135,7 @@ from ..reflectance.classify import T_DIFF, T_SPEC, Thresholds
 from ..reflectance.fill import nearest_candidates, precise_huber, vertex_adjacency, window_reach
 from ..result import Estimate
 from ..scan import checks
-from .final_gather import gather_parts, gather_rays
+from .final_gather import gather_parts, gather_rays, photons_per_configuration, rays_within_budget
 from .lm import gauss_newton_1d
 from .local import (
     _SPREADS,
@@ -1002,12 +1002,17 @@ def _pd_scale(fin, dof):
     return np.maximum(1.0, np.asarray(fin["chi2"]) / dof)[:, None]
 
 
-def _pd_std(fin, dof):
-    """`(N, 3)` standard deviation of step (a)'s pd at `_final`'s `fin`: its information, the
-    variance scaled by `_pd_scale` (inf: no sample)."""
-    scale = _pd_scale(fin, dof)
+def _pd_noise_var(fin):
+    """`(N, 3)` variance of step (a)'s pd at `_final`'s `fin` from the samples' weights alone:
+    the inverse of its information (inf: no sample)."""
     info = np.asarray(fin["info_pd"], np.float64)
-    return np.where(info > 0, np.sqrt(scale / np.where(info > 0, info, 1.0)), np.inf)
+    return np.where(info > 0, 1.0 / np.where(info > 0, info, 1.0), np.inf)
+
+
+def _pd_std(fin, dof):
+    """`(N, 3)` standard deviation of step (a)'s pd at `_final`'s `fin`: `_pd_noise_var` scaled
+    by `_pd_scale` (inf: no sample)."""
+    return np.sqrt(_pd_scale(fin, dof) * _pd_noise_var(fin))
 
 
 def _start(est: Estimate):
@@ -1082,7 +1087,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     n_cfg = len(configs.positions)
     per_config = scan.light_pos.ndim == 3
     index = jnp.asarray(configs.index) if per_config else None
-    photons = int(max(1000, round(options.photons * scan.n_lights / n_cfg)))
+    photons = photons_per_configuration(options.photons, scan.n_lights, n_cfg)
     timings["prepare"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -1093,9 +1098,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                                 seed=options.seed, first_bounce=options.gather_rays == 0)
     timings["trace"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    n_rays, fg = options.gather_rays, None
-    while n_rays > 1 and n_rays * int(use.sum()) > options.gather_budget:
-        n_rays //= 2
+    fg = None
+    n_rays = rays_within_budget(options.gather_rays, use.sum(), options.gather_budget) if options.gather_rays else 0
     if n_rays:
         fg = gather_rays(caster, scan.normals, scan.camera_positions(), scan.light_positions(), scan.intensities(),
                          (pd0, ps0, alpha0), use, n_rays, seed=options.seed)
@@ -1247,10 +1251,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
             # Its conflict test with the samples' own variance (noise and the photon map's error), not
             # the misfit-scaled one: a point the model fits badly has a wide scaled std, and would be
             # handed to its material's pd however far its data are.
-            info = np.asarray(fin["info_pd"], np.float64)
-            var_noise = np.where(info > 0, 1.0 / np.where(info > 0, info, 1.0), np.inf)
             diffuse = _pd_with_prior(scan, labels, observed_any, dark, pd, std_pd, options.local, prior_meta,
-                                     var_test=var_noise)
+                                     var_test=_pd_noise_var(fin))
             on = np.broadcast_to((observed_any & diffuse.available)[:, None], pd.shape)  # var finite there
             scale = _pd_scale(fin, dof)
             fixed = on & dark

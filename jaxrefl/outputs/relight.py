@@ -52,28 +52,38 @@ __all__ = [
 GI_MODELS = ("none", "radiosity", "photon")
 
 
+def _check_model_gi(model_gi, est: Estimate) -> None:
+    """`model_gi` is one of `GI_MODELS`, and `est` a Ward result where it is 'photon'."""
+    if model_gi not in GI_MODELS:
+        raise ValueError(f"model-gi: must be one of {', '.join(GI_MODELS)}, got {model_gi!r}")
+    if model_gi == "photon" and est.model != "ward":  # photon mapping traces the Ward model (Method III's)
+        raise ValueError(f"model-gi: photon relighting needs a Ward result, this one is {est.model!r} "
+                         "(estimate with --model ward, or use --model-gi radiosity)")
+
+
+def _checked(out, model_gi, shape) -> np.ndarray:
+    """`out` as float64, refused unless finite and of `shape`."""
+    out = np.asarray(out, dtype=np.float64)
+    if out.shape != shape or not np.all(np.isfinite(out)):
+        bad = int(np.count_nonzero(~np.isfinite(out)))
+        raise ValueError(f"model-gi: {model_gi} relighting returned {out.shape} "
+                         f"with {bad} non-finite value(s), want {shape}")
+    return out
+
+
 def indirect(model_gi, vertices, faces, normals, est: Estimate, light_pos, intensity, cam_pos) -> np.ndarray:
     """Interreflected radiance `(N, 3)` toward `cam_pos` `(3,)` under one point light
     at `light_pos` `(3,)` of intensity `intensity` [W/sr]; `model_gi` in `GI_MODELS`."""
     n = len(vertices)
     if model_gi == "none":
         return np.zeros((n, 3))
-    if model_gi not in GI_MODELS:
-        raise ValueError(f"model-gi: must be one of {', '.join(GI_MODELS)}, got {model_gi!r}")
+    _check_model_gi(model_gi, est)
     if model_gi == "radiosity":  # diffuse interreflection only (Method II's model)
         out = radiosity_indirect(vertices, faces, normals, est.pd, light_pos, intensity)
-    else:  # photon mapping traces the Ward model (Method III's model)
-        if est.model != "ward":
-            raise ValueError(f"model-gi: photon relighting needs a Ward result, this one is {est.model!r} "
-                             "(estimate with --model ward, or use --model-gi radiosity)")
+    else:
         out = photon_indirect(vertices, faces, normals, est.pd, est.ps, est.roughness, light_pos, intensity,
                               cam_pos)
-    out = np.asarray(out, dtype=np.float64)
-    if out.shape != (n, 3) or not np.all(np.isfinite(out)):
-        bad = int(np.count_nonzero(~np.isfinite(out)))
-        raise ValueError(f"model-gi: {model_gi} relighting returned {out.shape} "
-                         f"with {bad} non-finite value(s), want ({n}, 3)")
-    return out
+    return _checked(out, model_gi, (n, 3))
 
 
 def indirect_observations(model_gi, scan, est: Estimate, observed, caster: RayCaster | None = None,
@@ -85,24 +95,15 @@ def indirect_observations(model_gi, scan, est: Estimate, observed, caster: RayCa
     `observed` `(N, M)` observations. `settings`: keyword arguments of
     `radiosity.relight_observations` / `final_gather.relight_observations`."""
     n, m = scan.n_points, scan.n_lights
-    if model_gi not in GI_MODELS:
-        raise ValueError(f"model-gi: must be one of {', '.join(GI_MODELS)}, got {model_gi!r}")
+    _check_model_gi(model_gi, est)
     settings = dict(settings or {})
     if model_gi == "none":
         return np.zeros((n, m, 3))
     if model_gi == "radiosity":
         out = radiosity_observations(scan, est.pd, caster=caster, **settings)
     else:
-        if est.model != "ward":
-            raise ValueError(f"model-gi: photon relighting needs a Ward result, this one is {est.model!r} "
-                             "(estimate with --model ward, or use --model-gi radiosity)")
         out = photon_observations(scan, est.pd, est.ps, est.roughness, observed, caster, **settings)
-    out = np.asarray(out, dtype=np.float64)
-    if out.shape != (n, m, 3) or not np.all(np.isfinite(out)):
-        bad = int(np.count_nonzero(~np.isfinite(out)))
-        raise ValueError(f"model-gi: {model_gi} relighting returned {out.shape} "
-                         f"with {bad} non-finite value(s), want ({n}, {m}, 3)")
-    return out
+    return _checked(out, model_gi, (n, m, 3))
 
 
 def direct_radiance(vertices, normals, est: Estimate, light_pos, intensity, cam_pos,
