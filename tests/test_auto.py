@@ -274,6 +274,45 @@ def test_convex_scene_is_left_to_method_one(convex_scan, fresh_cache):
     json.dumps(est.meta)  # the meta is plain JSON
 
 
+def test_light_method_two_leaves_unexplained_sends_its_regions_to_method_three():
+    """The data, not the calibrated model, has the last word on Method II: where its residual
+    variance over its regions is twice the noise (the rest of the scan's) or more, the light it
+    leaves unexplained is as large as the noise, and Method III takes its points. Once Method III
+    ran, its pd is also taken where its own std is the tighter, and Method I's lobes stay outside
+    the regions where Method I measured or pooled them."""
+    n = 10
+    est = lambda status=0, std=0.01: Estimate(  # noqa: E731
+        np.full((n, 3), 0.5), np.full(n, 0.1), np.full(n, 0.1), np.asarray(np.broadcast_to(status, (n,)), np.int8),
+        np.asarray(np.broadcast_to(std, (n,)))[:, None].repeat(3, 1), np.full(n, 0.01), np.full(n, 0.01),
+        np.ones(n, bool), np.ones(n, bool), "ward")
+    local = est()
+    local.meta["residual_scale"] = {"median": 1.5, "region_median": None}
+    measures = SimpleNamespace(local=local)
+    assert auto._unexplained(measures, None) is None
+    radiosity = est()
+    radiosity.meta["residual_scale"] = {"median": 1.6, "region_median": 2.9}
+    u = auto._unexplained(measures, radiosity)
+    assert u["noise"] == 1.5 and u["ratio"] == pytest.approx(2.9 / 1.5) and u["ratio"] < auto._UNEXPLAINED
+    radiosity.meta["residual_scale"]["region_median"] = 300.0
+    assert auto._unexplained(measures, radiosity)["ratio"] == 200.0
+    radiosity.meta["residual_scale"] = {"median": 1.6, "region_median": None}  # Method II everywhere: no noise apart
+    assert auto._unexplained(measures, radiosity) is None
+
+    method = np.array([0, 0, 0, 1, 1, 1, 1, 0, 0, 0])
+    extended = np.array([0, 0, 0, 0, 0, 0, 1, 0, 0, 0], bool)
+    plan = auto.Plan(method, "radiosity", [], method > 0, {}, extended, ("radiosity",), np.zeros(n, np.int64))
+    up = auto._escalate(plan)
+    np.testing.assert_array_equal(up.method, np.where(method == 1, 2, method))
+    assert up.run == "photon" and up.runs == ("photon",)
+    # points 0-2: Method I measured / pooled / unresolved lobes; point 1's Method III std is the tighter
+    local = est(status=np.array([0, 3, 2, 0, 0, 0, 0, 0, 2, 0]), std=0.01)
+    photon = est(std=np.array([0.02, 0.005, 0.02, 0.02, 0.02, 0.02, 0.02, 0.02, 0.02, np.inf]))
+    src = auto._photon_sources(up, local, photon)
+    np.testing.assert_array_equal(src.method, [0, 2, 0, 2, 2, 2, 2, 0, 0, 0])
+    # ps: Method III's in the regions (not at the extension, point 6) and where Method I's lobe is not its own
+    np.testing.assert_array_equal(src.ps_method, [0, 0, 2, 2, 2, 2, 0, 0, 2, 0])
+
+
 def test_glossy_fold_plans_method_three_and_its_ps(fresh_cache):
     """Glossy Object E (Ward, tilted so its highlights are seen, path-traced interreflections):
     the mirror images of each plate in the other are light Method II leaves in its fit, so the
@@ -339,6 +378,8 @@ def test_photon_is_no_candidate_where_no_lobe_is_measured(fold_scan, fresh_cache
     assert not est.meta["runs"].get("photon")
     assert "photon" in a["unavailable"] and "no specular lobe" in a["unavailable"]["photon"]
     assert a["global_method"] == "radiosity"
+    # and the diffuse interreflection explains the fold: Method II's residuals there are the noise's
+    assert a["unexplained"]["ratio"] < auto._UNEXPLAINED and not a["unexplained"]["escalated"]
 
 
 def test_photon_is_a_candidate_only_for_ward_and_when_installed(monkeypatch):

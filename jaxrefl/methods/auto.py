@@ -65,10 +65,25 @@ fitted to measure the scene, and where interreflection is negligible it is at le
 accurate: `RESULTS_auto.md`).
 The choice is made on pd: the ps model cannot rank the methods (it predicts about the
 same ps error for every method where the measured ones differ by orders of magnitude).
-**ps and roughness** come from Method III at every point wherever it runs (it refits
-every lobe with the interreflected light removed, and its fill spreads those lobes, not
-Method I's), else from Method I (Method II removes only the diffuse interreflection, so
-its ps is no better than Method I's). Measurements: `benchmarks/RESULTS_notes.md`.
+
+**The data's check on Method II.** The model's gains come from Method I's lobes, which
+can miss the light a glossy cavity mirrors into itself. So where Method II runs, its own
+residuals decide whether it explained the regions: the median residual variance of its
+last fit over the regions' points against the noise (the scan-wide median, the smaller of
+Methods I's and II's: where most points fit, that is the noise). At twice the noise or
+more (`_UNEXPLAINED`: the light left unexplained as large as the noise) Method III runs
+instead and takes Method II's points, and `meta['auto']['unexplained']` says so. Where the
+regions cover most of the scan there is no noise apart from them to compare with, and the
+model's choice stands.
+
+**ps and roughness** come from Method III in its regions and wherever Method I's lobe is
+neither measured nor pooled (its fill spreads lobes fitted with the interreflected light
+removed), else from Method I: outside the regions the interreflected light is negligible,
+and a lobe Method I measured there is the same light's fit without the photon map's Monte
+Carlo error. Once Method III ran, its pd is also taken wherever its own standard deviation
+is below Method I's. Where only Method II runs, ps is Method I's (Method II removes only
+the diffuse interreflection, so its ps is no better). Measurements:
+`benchmarks/RESULTS_notes.md`.
 
 Method III (`jaxrefl.methods.inverse_photon`) is imported only when needed; it fits the
 Ward model, so it is a candidate only with `local.model == 'ward'`, when the
@@ -374,7 +389,7 @@ def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHOD
 class Plan:
     """`method` `(N,)` index into `METHODS` whose pd is used at each point; `ps_method` `(N,)`
     the one whose ps and roughness are used (Method III's everywhere when it runs, else Method
-    I's); `run` the most capable global method run (None: Method I alone); `regions`
+    I's; once Method III ran, `_photon_sources` narrows it and widens `method`); `run` the most capable global method run (None: Method I alone); `regions`
     one dict per region; `needs_global` `(N,)` the mask before regions were formed;
     `predicted` per-method scene medians and those of the plan; `extended` `(N,)` points
     outside the regions that take a global method's result as well (`_extension`, and the points
@@ -569,6 +584,49 @@ def _extension(scan, errors: dict, run: str, method, options: AutoOptions) -> np
 # -- running it ------------------------------------------------------------------------------
 
 
+_UNEXPLAINED = 2.0  # residual variance over the noise at which the light left unexplained equals the noise
+
+
+def _unexplained(measures: Measures, radiosity: Estimate | None) -> dict | None:
+    """How much of the regions' images Method II leaves unexplained: the median residual
+    variance of its last Method I fit over the regions' points (`meta['residual_scale']`)
+    over the noise, the smaller of Method I's and Method II's scan-wide medians (each
+    point's residual variance is at least its fit's median; where most points fit, that is
+    the noise). None where Method II did not run or reports none."""
+    if radiosity is None:
+        return None
+    scales = radiosity.meta.get("residual_scale", {})
+    region = scales.get("region_median")
+    noise = [v for v in (scales.get("median"), measures.local.meta.get("residual_scale", {}).get("median"))
+             if v is not None and v > 0]
+    if region is None or not noise:
+        return None
+    return {"region_residual": region, "noise": min(noise), "ratio": region / min(noise), "limit": _UNEXPLAINED}
+
+
+def _escalate(p: Plan) -> Plan:
+    """`p` with Method III in place of Method II at every point Method II was to give."""
+    method = np.where(p.method == METHODS.index("radiosity"), METHODS.index("photon"), p.method)
+    runs = tuple(k for k in p.runs if k != "radiosity") + ("photon",)
+    return dataclasses.replace(p, method=method, run="photon", runs=runs)
+
+
+def _photon_sources(p: Plan, local: Estimate, photon: Estimate) -> Plan:
+    """Where Method III's estimate replaces Method I's once both are at hand. pd: at the points
+    the plan gives it (its regions and extensions) and wherever its own standard deviation
+    (mean over RGB) is below Method I's. ps and roughness: in the regions, and outside them
+    where Method I's lobe is not measured or pooled (interpolated, unresolved): outside the
+    regions the interreflected light is negligible, and a lobe Method I measured there is the
+    same light's fit without the photon map's Monte Carlo error."""
+    photon_i = METHODS.index("photon")
+    region = (p.method == photon_i) & ~(p.extended if p.extended is not None else False)
+    tighter = np.nanmean(photon.std_pd, axis=1) < np.nanmean(local.std_pd, axis=1)
+    method = np.where(tighter & (p.method == 0), photon_i, p.method)
+    own = np.isin(local.status, (MEASURED, POOLED))
+    ps_method = np.where(region | ~own, photon_i, 0)
+    return dataclasses.replace(p, method=method, ps_method=ps_method.astype(np.int64))
+
+
 def photon_available(model: str) -> tuple[bool, str]:
     """Whether Method III can run for results in `model`, and why not."""
     if model != "ward":
@@ -660,13 +718,27 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         t0 = time.perf_counter()
         others[k] = _run(k, scan, options, caster, points=p.method == METHODS.index(k))
         seconds[k] = time.perf_counter() - t0
+    escalation = _unexplained(measures, others.get("radiosity"))
+    if escalation is not None:
+        escalation["escalated"] = bool(escalation["ratio"] >= _UNEXPLAINED and "photon" in available
+                                       and "photon" not in others)
+        if escalation["escalated"]:
+            # The diffuse interreflection does not explain the regions' images: what is left (the
+            # light specular lobes interreflect) is as large as the noise. Method III models it.
+            t0 = time.perf_counter()
+            others["photon"] = _run("photon", scan, options, caster)
+            seconds["photon"] = time.perf_counter() - t0
+            p = _escalate(p)
     t0 = time.perf_counter()
     local = measures.local
-    if options.local.prior and not options.local.paper and p.ps_method is not None and np.any(p.ps_method == 0):
+    if options.local.prior and not options.local.paper and (p.ps_method is None or np.any(p.ps_method == 0)
+                                                            or "photon" in others):
         # Where Method I's lobes are kept, keep them as Method I gives them: with the shared prior.
         local = estimate_local(scan, options.local, caster, rows=measures.rows)
         seconds["local_prior"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+    if "photon" in others:
+        p = _photon_sources(p, local, others["photon"])
     est = dataclasses.replace(local, meta=dict(local.meta))
     for k, other in others.items():
         est = _merge(est, other, p.method == METHODS.index(k), p.ps_method == METHODS.index(k))
@@ -693,8 +765,12 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
                  and r["pessimistic_pd"][p.run] > max(t, (1.0 + tol) * min(v["pd"] for v in r["predicted"].values()))]
         if short:
             reason += f" (in {len(short)} of them none is: {p.run} is the least short)"
+        if escalation is not None and escalation["escalated"]:
+            reason += (f"; Method II left {escalation['ratio']:.3g} times the noise's variance unexplained in them "
+                       f"(limit {_UNEXPLAINED:g}): Method III instead")
         if "photon" in p.runs:
-            reason += "; ps and roughness from Method III everywhere"
+            reason += ("; ps and roughness from Method III in the regions and where Method I's lobe is not "
+                       "measured or pooled, pd also where Method III's is the tighter")
     notes = []
     for k, why in unavailable.items():
         notes.append(f"{k} not available: {why}")
@@ -708,7 +784,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         "points_by_method": counts,
         "ps_points_by_method": {k: int(np.sum(p.ps_method == i)) for i, k in enumerate(METHODS)
                                 if np.any(p.ps_method == i)},
-        "candidates": available, "unavailable": unavailable, "notes": notes,
+        "candidates": available, "unavailable": unavailable, "notes": notes, "unexplained": escalation,
         "statistics": measures.statistics(),
         "predicted": p.predicted, "predicted_unavailable": best_unavailable,
         "needs_global_points": int(p.needs_global.sum()),

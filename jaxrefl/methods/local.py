@@ -890,6 +890,17 @@ def fit_rows(rows: dict, options: LocalOptions = LocalOptions(), noise_floor: fl
                   std_ln_roughness=sd[:, 4], spec_samples=n_spec, chunks=chunks)
 
 
+def _residual_scale(s2, observed, region=None) -> dict:
+    """Medians of the rows' residual variance `s2` `(N,)` over the `observed` points and over
+    those in `region` (None where not given or empty)."""
+    def median(mask):
+        v = s2[mask & np.isfinite(s2)]
+        return float(np.median(v)) if v.size else None
+
+    return {"median": median(observed),
+            "region_median": None if region is None else median(observed & np.asarray(region, bool))}
+
+
 def fill_unobserved_pd(pd, std_pd, status, observed_any, adjacency, window: int, keep_values: bool = False) -> None:
     """In place: pd of points without any usable sample from the observed ones in their
     window (status at least `interpolated`; `unresolved` when filled from farther away
@@ -1157,15 +1168,19 @@ def _fill_from_gates(scan, rows, fit, observed_any, adjacency, options, q, value
 
 
 def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCaster | None = None,
-                   rows: dict | None = None, quantisation: float | None = None) -> Estimate:
+                   rows: dict | None = None, quantisation: float | None = None, region=None) -> Estimate:
     """Method I on a scan with radiance. See the module docstring. `rows`: the scan's
     `prepare_rows(scan, options.thresholds, caster)` when the caller has it already;
     `quantisation`: the sensor's quantisation step where `scan.radiance` is not the sensor's
     values (Method II passes what is left after the interreflected light, off the sensor's
-    lattice); None: detected from `scan.radiance` (`quantisation_step`).
+    lattice); None: detected from `scan.radiance` (`quantisation_step`); `region` `(N,)` bool
+    points whose residual scale `meta['residual_scale']` reports apart.
 
     **Returns:** `Estimate` (no NaN: unresolved values are filled, their
-    standard deviations infinite).
+    standard deviations infinite); `meta['residual_scale']`: the median over the observed
+    points (and over those in `region`) of each point's residual variance in units of the
+    weights (`noise_scale`, at least the scan's median): how far the model leaves the
+    images unexplained, the median point's being the noise where most points fit.
     """
     scan, top = checks.method_input(scan)  # top: called by the user, not by another method
     if quantisation is not None and not (np.isfinite(quantisation) and quantisation >= 0):
@@ -1221,6 +1236,7 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
             "quantisation_step": q, "seconds": timings,
             "points_with_observations": int(observed_any.sum()),
             "points_with_diffuse_only_sample": int(fit["has_diffuse_sample"].sum()),
+            "residual_scale": _residual_scale(fit["noise_scale"], observed_any, region),
             "observation_checks": scan.meta["observation_checks"], **extra}
     est = Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, observed_any,
                    options.model, meta, material)

@@ -450,7 +450,9 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
     region; outside `points` the result is Method I's.
 
     **Returns:** `Estimate` with `meta['method'] == 'radiosity'` (iterations,
-    form-factor statistics and seconds per stage in `meta`).
+    form-factor statistics and seconds per stage in `meta`; `meta['residual_scale']` that of
+    the last Method I fit, on the images less the interreflected diffuse light, its `region_median`
+    over `points`: what the diffuse interreflection leaves unexplained there).
     """
     scan, top = checks.method_input(scan)  # top: called by the user, not by another method
     region = np.ones(scan.n_points, bool) if points is None else np.asarray(points, bool)
@@ -514,7 +516,7 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
         reflected = inv.pd[:, None, :] * inv.interreflected / np.pi
         residual = np.where(use[..., None], np.maximum(scan.radiance - reflected, 0.0), scan.radiance)
         est = estimate_local(dataclasses.replace(scan, radiance=residual.astype(scan.radiance.dtype)),
-                             local_options, caster, quantisation=q_step)
+                             local_options, caster, quantisation=q_step, region=region)
         timings["local"] += time.perf_counter() - t0
         # T_diff samples are free of specular light by construction (theta_r > theta_th1), so
         # only points without one take the specular estimate off their samples.
