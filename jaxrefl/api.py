@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from .methods.auto import AutoOptions, estimate_auto
+from .methods.auto import AutoOptions, estimate_auto, holdout_check
 from .methods.inverse_photon import PhotonOptions, estimate_photon
 from .methods.local import LocalOptions, estimate_local
 from .methods.radiosity import RadiosityOptions, estimate_radiosity
@@ -94,7 +94,9 @@ def estimate(scan, method=Local(), *, holdout=None, holdout_seed: int = 0, progr
     - `holdout`: None (fit on every light); a fraction in (0, 1) of the lights to hold
       out, drawn with `holdout_seed`; or a list of light indices. The estimate is fitted
       without them, relit under them and compared with their images: the error lands in
-      `est.meta['holdout']` (`jaxrefl.outputs.holdout`).
+      `est.meta['holdout']` (`jaxrefl.outputs.holdout`). With `Auto`, a global method's result
+      that predicts them worse than Method I alone is replaced by Method I's
+      (`jaxrefl.methods.auto.holdout_check`, `est.meta['auto']['holdout_check']`).
     - `progress`: a bar over the stages on stderr (Method III: with its iterations).
       None: only when stderr is a terminal.
 
@@ -144,7 +146,9 @@ def estimate(scan, method=Local(), *, holdout=None, holdout_seed: int = 0, progr
                 stage("held-out lights")
                 return out
 
-            est = estimate_with_holdout(scan, fit, held)[0]
+            est, fit_scan, test_scan = estimate_with_holdout(scan, fit, held)
+            if name == "auto":  # it never returns a method its held-out check measures worse than Method I
+                est = holdout_check(est, fit_scan, test_scan, method)
             if fraction is not None:
                 est.meta["holdout"].update(fraction=float(fraction), seed=int(holdout_seed))
         bar.update()

@@ -382,6 +382,48 @@ def test_photon_is_no_candidate_where_no_lobe_is_measured(fold_scan, fresh_cache
     assert a["unexplained"]["ratio"] < auto._UNEXPLAINED and not a["unexplained"]["escalated"]
 
 
+def test_held_out_check_returns_method_one_where_the_global_result_predicts_worse(convex_scan, fresh_cache):
+    """auto's held-out check (`jaxrefl.estimate(..., holdout=...)` with Auto): a global result
+    whose relit held-out images are worse than Method I's beyond the held-out noise is replaced
+    by Method I's, and says why; one that is not stays, with the comparison in its meta."""
+    from jaxrefl.outputs.holdout import paired_holdout, split_scan
+
+    fit_scan, test_scan = split_scan(convex_scan, [3])
+    options = auto.AutoOptions(radiosity=RadiosityOptions(rays=64))
+    local = estimate_local(fit_scan, options.local)
+    meta = {"method": "auto", "auto": {"global_method": "radiosity", "global_methods": ["radiosity"],
+                                       "choice": "local+radiosity"}}
+    same = dataclasses.replace(local, meta=dict(meta))
+    kept = auto.holdout_check(same, fit_scan, test_scan, options)
+    check = kept.meta["auto"]["holdout_check"]
+    assert not check["worse"] and check["kept"] == "local+radiosity" and check["samples"] > 100
+    assert abs(check["difference"]) <= 2 * check["se"] + 1e-12
+    wrong = dataclasses.replace(local, pd=0.8 * local.pd, meta=dict(meta))
+    assert paired_holdout(wrong, local, test_scan)["worse"]
+    out = auto.holdout_check(wrong, fit_scan, test_scan, options)
+    a = out.meta["auto"]
+    assert a["choice"] == "local" and a["global_method"] is None and "held-out check" in a["reason"]
+    assert a["holdout_check"]["worse"] and a["holdout_check"]["difference"] > 2 * a["holdout_check"]["se"]
+    np.testing.assert_allclose(out.pd, local.pd)
+    assert out.meta["holdout"]["rel_rms"] is not None and any("held-out check" in w for w in out.meta["method_warnings"])
+    # a result that ran no global method is left as it is
+    plain = dataclasses.replace(local, meta={"method": "auto", "auto": {"global_method": None}})
+    assert auto.holdout_check(plain, fit_scan, test_scan, options) is plain
+
+
+def test_api_runs_autos_held_out_check(fold_scan, fresh_cache):
+    """Through `jaxrefl.estimate`: the white fold's Method II result predicts a held-out light
+    no worse than Method I, so it stays, and the check is in its meta."""
+    import jaxrefl
+
+    est = jaxrefl.estimate(fold_scan, jaxrefl.Auto(target_error=0.05, radiosity=RadiosityOptions(rays=64)),
+                           holdout=[1], progress=False)
+    a = est.meta["auto"]
+    assert a["global_method"] == "radiosity" and not a["holdout_check"]["worse"]
+    assert a["holdout_check"]["difference"] < 0  # Method II's held-out error is the smaller
+    assert est.meta["holdout"]["lights"] == [1]
+
+
 def test_photon_is_a_candidate_only_for_ward_and_when_installed(monkeypatch):
     ok, why = auto.photon_available("torrance-sparrow")
     assert not ok and "Ward" in why

@@ -113,7 +113,7 @@ from ..scan import checks
 from .local import INTERPOLATED, MEASURED, POOLED, UNRESOLVED, LocalOptions, estimate_local, prepare_rows
 from .radiosity import RadiosityOptions, estimate_radiosity
 
-__all__ = ["METHODS", "ErrorModel", "AutoOptions", "Measures", "Plan", "interreflection_ratios", "photon_k", "measure", "predict_parts", "predict", "plan", "estimate_auto", "photon_available"]
+__all__ = ["METHODS", "ErrorModel", "AutoOptions", "Measures", "Plan", "interreflection_ratios", "photon_k", "measure", "predict_parts", "predict", "plan", "estimate_auto", "holdout_check", "photon_available"]
 
 #: Candidate methods, cheapest first.
 METHODS = ("local", "radiosity", "photon")
@@ -625,6 +625,40 @@ def _photon_sources(p: Plan, local: Estimate, photon: Estimate) -> Plan:
     own = np.isin(local.status, (MEASURED, POOLED))
     ps_method = np.where(region | ~own, photon_i, 0)
     return dataclasses.replace(p, method=method, ps_method=ps_method.astype(np.int64))
+
+
+def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = AutoOptions(),
+                  caster: RayCaster | None = None) -> Estimate:
+    """auto's held-out check, where lights were held out (`jaxrefl.estimate(..., holdout=...)`):
+    `est`, auto's result on `fit_scan`, against Method I alone on the same lights
+    (`options.local`), both relit under `test_scan`'s held-out lights with their own
+    interreflection models (`holdout.paired_holdout`). Where a global method ran and its result
+    predicts the held-out images worse than Method I's (beyond the held-out noise), Method I's
+    result is returned instead: auto never returns a method its own held-out check measures worse
+    than the cheapest. `meta['auto']['holdout_check']` holds the comparison and what was done;
+    the returned result's `meta['holdout']` is its own held-out error (`evaluate_holdout`).
+    A held-out check on coaxial lights cannot see interreflection that every light makes alike
+    (pd absorbs it for all of them): it can veto a global method, not ask for one."""
+    from ..outputs.holdout import evaluate_holdout, paired_holdout
+
+    auto_meta = est.meta.get("auto", {})
+    if not auto_meta.get("global_method"):
+        return est
+    local = estimate_local(fit_scan, options.local, RayCaster(fit_scan.vertices, fit_scan.faces))
+    check = paired_holdout(est, local, test_scan, caster)
+    check["kept"] = "local" if check["worse"] else auto_meta.get("choice")
+    meta = dict(est.meta, auto=dict(auto_meta, holdout_check=check))
+    if not check["worse"]:
+        return dataclasses.replace(est, meta=meta)
+    why = (f"held-out check: {auto_meta.get('choice')} predicts the held-out lights worse than Method I alone "
+           f"(squared-error difference {check['difference']:.3g} +- {check['se']:.3g} of the mean observed "
+           "square): Method I's result")
+    logger.warning(why)
+    meta["auto"].update(choice="local", reason=why, global_method=None)
+    meta["method_warnings"] = list(meta.get("method_warnings", [])) + [why]
+    out = dataclasses.replace(local, meta=_jsonable(meta))
+    evaluate_holdout(out, test_scan, caster)
+    return out
 
 
 def photon_available(model: str) -> tuple[bool, str]:

@@ -31,7 +31,7 @@ from ..geometry.raycast import RayCaster
 from . import relight as rl
 
 __all__ = ["choose_holdout", "split_scan", "gi_model", "relight_settings", "holdout_error", "truth_holdout_error",
-           "evaluate_holdout", "estimate_with_holdout"]
+           "evaluate_holdout", "estimate_with_holdout", "paired_holdout"]
 
 
 def choose_holdout(n_lights: int, fraction: float | None = None, lights=None, seed: int = 0) -> np.ndarray:
@@ -184,6 +184,47 @@ def _empty(lights, gi, reason):
             "per_light_rel_rms": [None] * len(lights), "per_light_samples": [0] * len(lights), "reason": reason}
 
 
+def _usable(test_scan, caster) -> np.ndarray:
+    """`(N, H)` bool: the held-out samples compared (module docstring)."""
+    from ..reflectance.classify import classify
+
+    return classify(test_scan.vertices, test_scan.normals, test_scan.cam_pos, test_scan.light_pos, caster,
+                    observed=test_scan.observed()).measurable
+
+
+def _relit(est, test_scan, caster, gi, use, settings):
+    """`(pred (N, H, 3), gi, note)`: `est` relit under `gi` (its settings where `settings` is
+    None); direct light only, said in `note`, where the interreflection module is missing."""
+    settings = relight_settings(est, gi) if settings is None else settings
+    try:
+        return _predict(est, test_scan, caster, gi, use, settings), gi, None
+    except ImportError as exc:
+        return (_predict(est, test_scan, caster, "none", use, settings), "none",
+                f"{gi} interreflection unavailable ({exc}); direct light only")
+
+
+def paired_holdout(est, other, test_scan, caster: RayCaster | None = None) -> dict:
+    """`est` against `other` on the same held-out samples, each relit with the interreflection
+    its own method modelled (`gi_model`): per sample the difference of their squared errors
+    (summed over RGB), its mean and standard error over the samples, both over the mean
+    observed square (`difference`, `se`: 0 where both predict alike), and `worse`: `est`'s
+    error above `other`'s by more than two standard errors (not a fluctuation of the held-out
+    noise). JSON-ready; `samples` 0 and `worse` False where no sample can be compared."""
+    if test_scan.radiance is None:
+        return {"difference": None, "se": None, "worse": False, "samples": 0}
+    caster = caster or RayCaster(test_scan.vertices, test_scan.faces)
+    use = _usable(test_scan, caster)
+    obs = np.asarray(test_scan.radiance, dtype=np.float64)[use]
+    err = [((_relit(e, test_scan, caster, gi_model(e), use, None)[0][use] - obs) ** 2).sum(-1) for e in (est, other)]
+    scale = float(np.mean((obs**2).sum(-1))) if use.any() else 0.0
+    if use.sum() < 2 or not scale > 0:
+        return {"difference": None, "se": None, "worse": False, "samples": int(use.sum())}
+    d = (err[0] - err[1]) / scale
+    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d)))
+    return {"difference": mean, "se": se, "worse": bool(mean > 2.0 * se), "samples": int(use.sum()),
+            "gi": [gi_model(est), gi_model(other)]}
+
+
 def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "auto",
                   settings: dict | None = None) -> dict:
     """Error of `est` relit under the observations of `test_scan` against their radiance.
@@ -198,8 +239,6 @@ def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "au
     `per_light_rel_rms` and `per_light_samples` (one per light). Never NaN: with
     no usable sample `rel_rms` and `median_rel` are None and `reason` says why.
     """
-    from ..reflectance.classify import classify
-
     if np.shape(est.pd)[0] != test_scan.n_points:
         raise ValueError(f"holdout: the result has {np.shape(est.pd)[0]} points, the scan {test_scan.n_points}")
     lights = [int(i) for i in test_scan.meta.get("holdout", {}).get("lights", range(test_scan.n_lights))]
@@ -209,18 +248,10 @@ def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "au
     if test_scan.radiance is None:
         return _empty(lights, gi, "the held-out observations have no radiance")
     caster = caster or RayCaster(test_scan.vertices, test_scan.faces)
-    use = classify(test_scan.vertices, test_scan.normals, test_scan.cam_pos, test_scan.light_pos, caster,
-                   observed=test_scan.observed()).measurable
+    use = _usable(test_scan, caster)
     if not use.any():
         return _empty(lights, gi, "no held-out sample is observed (valid, unsaturated), lit and seen by its camera")
-    note = None
-    settings = relight_settings(est, gi) if settings is None else settings
-    try:
-        pred = _predict(est, test_scan, caster, gi, use, settings)
-    except ImportError as exc:  # the interreflection module is missing: direct light only
-        note = f"{gi} interreflection unavailable ({exc}); direct light only"
-        gi = "none"
-        pred = _predict(est, test_scan, caster, gi, use, settings)
+    pred, gi, note = _relit(est, test_scan, caster, gi, use, settings)
     obs = np.asarray(test_scan.radiance, dtype=np.float64)
     d2 = np.where(use[..., None], (pred - obs) ** 2, 0.0).sum(axis=-1)    # (N, H)
     o2 = np.where(use[..., None], obs**2, 0.0).sum(axis=-1)
