@@ -128,6 +128,24 @@ def test_convex_object_accuracy(convex_noisy):
     assert known.sum() >= 0.9 * est.pd_measured.sum()
 
 
+def test_residual_scale_is_the_noise_in_the_weights_units():
+    """`meta['residual_scale']`: the median point's residual variance in the units of the weights
+    (1 % relative noise) is the sensor's noise where the model fits: about 1 at 1 % noise and 9
+    times that at 3 %; a region's own median is reported apart (here the lower half of the vase,
+    no different from the rest)."""
+    lights = [23, 24, 25, 26, 34, 35, 36]
+    medians = []
+    for noise in (0.01, 0.03):
+        scan, _ = make_scan("V", resolution=32, lights=lights, sensor=Sensor(noise=noise, bits=16), seed=5)
+        region = scan.vertices[:, 1] < np.median(scan.vertices[:, 1])
+        rs = estimate_local(scan, region=region).meta["residual_scale"]
+        medians.append(rs["median"])
+        assert rs["region_median"] == pytest.approx(rs["median"], rel=0.3)
+    assert 0.6 <= medians[0] <= 1.6
+    assert 7.0 <= medians[1] / medians[0] <= 11.0
+    assert estimate_local(scan).meta["residual_scale"]["region_median"] is None
+
+
 def test_uncertainty_is_calibrated(convex_noisy):
     """55-80 % of measured points lie within one reported standard deviation (68 % ideal);
     pooled points at least 55 % (their prior's width is measured on the points with their
