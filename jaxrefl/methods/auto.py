@@ -389,7 +389,8 @@ def predict(measures: Measures, model: ErrorModel = ErrorModel(), methods=METHOD
 class Plan:
     """`method` `(N,)` index into `METHODS` whose pd is used at each point; `ps_method` `(N,)`
     the one whose ps and roughness are used (Method III's everywhere when it runs, else Method
-    I's; once Method III ran, `_photon_sources` narrows it and widens `method`); `run` the most capable global method run (None: Method I alone); `regions`
+    I's; once Method III ran, `_photon_sources` narrows it and widens `method`); `run` the most
+    capable global method run (None: Method I alone); `regions`
     one dict per region; `needs_global` `(N,)` the mask before regions were formed;
     `predicted` per-method scene medians and those of the plan; `extended` `(N,)` points
     outside the regions that take a global method's result as well (`_extension`, and the points
@@ -644,7 +645,8 @@ def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = Aut
     auto_meta = est.meta.get("auto", {})
     if not auto_meta.get("global_method"):
         return est
-    local = estimate_local(fit_scan, options.local, RayCaster(fit_scan.vertices, fit_scan.faces))
+    caster = caster or RayCaster(fit_scan.vertices, fit_scan.faces)  # the two scans share the mesh
+    local = estimate_local(fit_scan, options.local, caster)
     check = paired_holdout(est, local, test_scan, caster)
     check["kept"] = "local" if check["worse"] else auto_meta.get("choice")
     meta = dict(est.meta, auto=dict(auto_meta, holdout_check=check))
