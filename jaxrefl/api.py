@@ -95,7 +95,7 @@ def estimate(scan, method=Local(), *, holdout=None, holdout_seed: int = 0, progr
       out, drawn with `holdout_seed`; or a list of light indices. The estimate is fitted
       without them, relit under them and compared with their images: the error lands in
       `est.meta['holdout']` (`jaxrefl.outputs.holdout`). With `Auto`, a global method's result
-      that predicts them worse than Method I alone is replaced by Method I's
+      that predicts them worse than a cheaper method alone is replaced by that one's
       (`jaxrefl.methods.auto.holdout_check`, `est.meta['auto']['holdout_check']`).
     - `progress`: a bar over the stages on stderr (Method III: with its iterations).
       None: only when stderr is a terminal.

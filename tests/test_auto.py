@@ -396,16 +396,28 @@ def test_held_out_check_returns_method_one_where_the_global_result_predicts_wors
     same = dataclasses.replace(local, meta=dict(meta))
     kept = auto.holdout_check(same, fit_scan, test_scan, options)
     check = kept.meta["auto"]["holdout_check"]
-    assert not check["worse"] and check["kept"] == "local+radiosity" and check["samples"] > 100
-    assert abs(check["difference"]) <= 2 * check["se"] + 1e-12
+    assert check["kept"] == "local+radiosity" and len(check["comparisons"]) == 1  # Method II's result: vs Method I
+    c = check["comparisons"][0]
+    assert c["against"] == "local" and not c["worse"] and c["samples"] > 100
+    assert abs(c["difference"]) <= 2 * c["se"] + 1e-12
     wrong = dataclasses.replace(local, pd=0.8 * local.pd, meta=dict(meta))
     assert paired_holdout(wrong, local, test_scan)["worse"]
     out = auto.holdout_check(wrong, fit_scan, test_scan, options)
     a = out.meta["auto"]
     assert a["choice"] == "local" and a["global_method"] is None and "held-out check" in a["reason"]
-    assert a["holdout_check"]["worse"] and a["holdout_check"]["difference"] > 2 * a["holdout_check"]["se"]
+    c = a["holdout_check"]["comparisons"][0]
+    assert a["holdout_check"]["kept"] == "local" and c["worse"] and c["difference"] > 2 * c["se"]
     np.testing.assert_allclose(out.pd, local.pd)
     assert out.meta["holdout"]["rel_rms"] is not None and any("held-out check" in w for w in out.meta["method_warnings"])
+    # a result of Method III's model is checked against Method II first, then what is kept against Method I
+    photon_meta = {"method": "auto", "auto": {"global_method": "photon", "global_methods": ["photon"],
+                                              "choice": "local+photon"}}
+    wrong3 = dataclasses.replace(local, pd=0.8 * local.pd, model="ward", meta=photon_meta)
+    out3 = auto.holdout_check(wrong3, fit_scan, test_scan, options)
+    comps = out3.meta["auto"]["holdout_check"]["comparisons"]
+    assert [c["against"] for c in comps] == ["radiosity", "local"]
+    assert comps[0]["worse"] and comps[1]["result"] == "radiosity" and not comps[1]["worse"]
+    assert out3.meta["auto"]["holdout_check"]["kept"] == "radiosity" and out3.meta["auto"]["choice"] == "radiosity"
     # a result that ran no global method is left as it is
     plain = dataclasses.replace(local, meta={"method": "auto", "auto": {"global_method": None}})
     assert auto.holdout_check(plain, fit_scan, test_scan, options) is plain
@@ -419,8 +431,9 @@ def test_api_runs_autos_held_out_check(fold_scan, fresh_cache):
     est = jaxrefl.estimate(fold_scan, jaxrefl.Auto(target_error=0.05, radiosity=RadiosityOptions(rays=64)),
                            holdout=[1], progress=False)
     a = est.meta["auto"]
-    assert a["global_method"] == "radiosity" and not a["holdout_check"]["worse"]
-    assert a["holdout_check"]["difference"] < 0  # Method II's held-out error is the smaller
+    (c,) = a["holdout_check"]["comparisons"]
+    assert a["global_method"] == "radiosity" and c["against"] == "local" and not c["worse"]
+    assert c["difference"] < 0  # Method II's held-out error is the smaller
     assert est.meta["holdout"]["lights"] == [1]
 
 

@@ -631,34 +631,44 @@ def _photon_sources(p: Plan, local: Estimate, photon: Estimate) -> Plan:
 def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = AutoOptions(),
                   caster: RayCaster | None = None) -> Estimate:
     """auto's held-out check, where lights were held out (`jaxrefl.estimate(..., holdout=...)`):
-    `est`, auto's result on `fit_scan`, against Method I alone on the same lights
-    (`options.local`), both relit under `test_scan`'s held-out lights with their own
-    interreflection models (`holdout.paired_holdout`). Where a global method ran and its result
-    predicts the held-out images worse than Method I's (beyond the held-out noise), Method I's
-    result is returned instead: auto never returns a method its own held-out check measures worse
-    than the cheapest. `meta['auto']['holdout_check']` holds the comparison and what was done;
-    the returned result's `meta['holdout']` is its own held-out error (`evaluate_holdout`).
-    A held-out check on coaxial lights cannot see interreflection that every light makes alike
-    (pd absorbs it for all of them): it can veto a global method, not ask for one."""
-    from ..outputs.holdout import evaluate_holdout, paired_holdout
+    `est`, auto's result on `fit_scan`, against each cheaper method alone on the same lights,
+    most capable first (Method II where `est` models the specular interreflection too, with
+    `options.radiosity`; then Method I, `options.local`), every result relit under
+    `test_scan`'s held-out lights with its own interreflection model (`holdout.paired_holdout`).
+    Where the result in hand predicts the held-out images worse than the cheaper one's (beyond
+    the held-out noise), the cheaper one takes its place: auto never returns a method its own
+    held-out check measures worse than a cheaper one. `meta['auto']['holdout_check']` holds
+    every comparison and what was kept; the returned result's `meta['holdout']` is its own
+    held-out error (`evaluate_holdout`). A held-out check on coaxial lights cannot see
+    interreflection that every light makes alike (pd absorbs it for all of them): it can veto a
+    global method, not ask for one."""
+    from ..outputs.holdout import evaluate_holdout, gi_model, paired_holdout
 
     auto_meta = est.meta.get("auto", {})
     if not auto_meta.get("global_method"):
         return est
     caster = caster or RayCaster(fit_scan.vertices, fit_scan.faces)  # the two scans share the mesh
-    local = estimate_local(fit_scan, options.local, caster)
-    check = paired_holdout(est, local, test_scan, caster)
-    check["kept"] = "local" if check["worse"] else auto_meta.get("choice")
-    meta = dict(est.meta, auto=dict(auto_meta, holdout_check=check))
-    if not check["worse"]:
+    cheaper = (["radiosity"] if gi_model(est) == "photon" and "radiosity" in options.methods else []) + ["local"]
+    comparisons, kept, current = [], auto_meta.get("choice"), est
+    for name in cheaper:
+        other = _run(name, fit_scan, options, caster) if name == "radiosity" else \
+            estimate_local(fit_scan, options.local, caster)
+        check = paired_holdout(current, other, test_scan, caster)
+        comparisons.append({"result": kept, "against": name, **check})
+        if check["worse"]:
+            current, kept = other, name
+    meta = dict(est.meta, auto=dict(auto_meta, holdout_check={"kept": kept, "comparisons": comparisons}))
+    if current is est:
         return dataclasses.replace(est, meta=meta)
-    why = (f"held-out check: {auto_meta.get('choice')} predicts the held-out lights worse than Method I alone "
-           f"(squared-error difference {check['difference']:.3g} +- {check['se']:.3g} of the mean observed "
-           "square): Method I's result")
+    vetoes = [c for c in comparisons if c["worse"]]
+    why = "held-out check: " + "; ".join(
+        f"{c['result']} predicts the held-out lights worse than {c['against']} alone (squared-error difference "
+        f"{c['difference']:.3g} +- {c['se']:.3g} of the mean observed square)" for c in vetoes) + f": {kept}'s result"
     logger.warning(why)
-    meta["auto"].update(choice="local", reason=why, global_method=None)
+    meta["auto"].update(choice=kept, reason=why, global_method=None if kept == "local" else kept,
+                        global_methods=[] if kept == "local" else [kept])
     meta["method_warnings"] = list(meta.get("method_warnings", [])) + [why]
-    out = dataclasses.replace(local, meta=_jsonable(meta))
+    out = dataclasses.replace(current, meta=_jsonable(meta))
     evaluate_holdout(out, test_scan, caster)
     return out
 
