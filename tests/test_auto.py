@@ -300,10 +300,11 @@ def test_light_method_two_leaves_unexplained_sends_its_regions_to_method_three()
 
     method = np.array([0, 0, 0, 1, 1, 1, 1, 0, 0, 0])
     extended = np.array([0, 0, 0, 0, 0, 0, 1, 0, 0, 0], bool)
-    plan = auto.Plan(method, "radiosity", [], method > 0, {}, extended, ("radiosity",), np.zeros(n, np.int64))
+    plan = auto.Plan(method, "radiosity", [{"region": 0, "method": "radiosity"}], method > 0, {}, extended,
+                     ("radiosity",), np.zeros(n, np.int64))
     up = auto._escalate(plan)
     np.testing.assert_array_equal(up.method, np.where(method == 1, 2, method))
-    assert up.run == "photon" and up.runs == ("photon",)
+    assert up.run == "photon" and up.runs == ("photon",) and up.regions[0]["method"] == "photon"
     # points 0-2: Method I measured / pooled / unresolved lobes; point 1's Method III std is the tighter
     local = est(status=np.array([0, 3, 2, 0, 0, 0, 0, 0, 2, 0]), std=0.01)
     photon = est(std=np.array([0.02, 0.005, 0.02, 0.02, 0.02, 0.02, 0.02, 0.02, 0.02, np.inf]))
@@ -417,7 +418,11 @@ def test_held_out_check_returns_method_one_where_the_global_result_predicts_wors
     comps = out3.meta["auto"]["holdout_check"]["comparisons"]
     assert [c["against"] for c in comps] == ["radiosity", "local"]
     assert comps[0]["worse"] and comps[1]["result"] == "radiosity" and not comps[1]["worse"]
-    assert out3.meta["auto"]["holdout_check"]["kept"] == "radiosity" and out3.meta["auto"]["choice"] == "radiosity"
+    a3 = out3.meta["auto"]
+    assert a3["holdout_check"]["kept"] == "radiosity" and a3["choice"] == "radiosity"
+    # the rejected plan is kept apart; the result is Method II's pd with Method I's lobes, as auto uses Method II
+    assert a3["points_by_method"] == {"radiosity": fit_scan.n_points} and "rejected" in a3["holdout_check"]
+    np.testing.assert_allclose(out3.ps, local.ps)
     # a result that ran no global method is left as it is
     plain = dataclasses.replace(local, meta={"method": "auto", "auto": {"global_method": None}})
     assert auto.holdout_check(plain, fit_scan, test_scan, options) is plain

@@ -606,21 +606,23 @@ def _unexplained(measures: Measures, radiosity: Estimate | None) -> dict | None:
 
 
 def _escalate(p: Plan) -> Plan:
-    """`p` with Method III in place of Method II at every point Method II was to give."""
+    """`p` with Method III in place of Method II at every point (and region) Method II was to give
+    (`predicted` stays the model's prediction of the plan before)."""
     method = np.where(p.method == METHODS.index("radiosity"), METHODS.index("photon"), p.method)
     runs = tuple(k for k in p.runs if k != "radiosity") + ("photon",)
-    return dataclasses.replace(p, method=method, run="photon", runs=runs)
+    regions = [dict(r, method="photon", escalated=True) if r.get("method") == "radiosity" else r for r in p.regions]
+    return dataclasses.replace(p, method=method, run="photon", runs=runs, regions=regions)
 
 
 def _photon_sources(p: Plan, local: Estimate, photon: Estimate) -> Plan:
     """Where Method III's estimate replaces Method I's once both are at hand. pd: at the points
     the plan gives it (its regions and extensions) and wherever its own standard deviation
-    (mean over RGB) is below Method I's. ps and roughness: in the regions, and outside them
+    (mean over RGB) is below Method I's. ps and roughness: in the regions (Method II's as well), and outside them
     where Method I's lobe is not measured or pooled (interpolated, unresolved): outside the
     regions the interreflected light is negligible, and a lobe Method I measured there is the
     same light's fit without the photon map's Monte Carlo error."""
     photon_i = METHODS.index("photon")
-    region = (p.method == photon_i) & ~(p.extended if p.extended is not None else False)
+    region = (p.method > 0) & ~(p.extended if p.extended is not None else False)  # Method II's too
     tighter = np.nanmean(photon.std_pd, axis=1) < np.nanmean(local.std_pd, axis=1)
     method = np.where(tighter & (p.method == 0), photon_i, p.method)
     own = np.isin(local.status, (MEASURED, POOLED))
@@ -632,32 +634,39 @@ def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = Aut
                   caster: RayCaster | None = None) -> Estimate:
     """auto's held-out check, where lights were held out (`jaxrefl.estimate(..., holdout=...)`):
     `est`, auto's result on `fit_scan`, against each cheaper method alone on the same lights,
-    most capable first (Method II where `est` models the specular interreflection too, with
-    `options.radiosity`; then Method I, `options.local`), every result relit under
-    `test_scan`'s held-out lights with its own interreflection model (`holdout.paired_holdout`).
-    Where the result in hand predicts the held-out images worse than the cheaper one's (beyond
-    the held-out noise), the cheaper one takes its place: auto never returns a method its own
-    held-out check measures worse than a cheaper one. `meta['auto']['holdout_check']` holds
-    every comparison and what was kept; the returned result's `meta['holdout']` is its own
-    held-out error (`evaluate_holdout`). A held-out check on coaxial lights cannot see
-    interreflection that every light makes alike (pd absorbs it for all of them): it can veto a
-    global method, not ask for one."""
+    most capable first (Method II's pd with Method I's lobes, as auto uses Method II, where `est`
+    models the specular interreflection too; then Method I, `options.local`), every result
+    relit under `test_scan`'s held-out lights with its own interreflection model
+    (`holdout.paired_holdout`). Where the result in hand predicts the held-out images worse
+    than the cheaper one's (beyond the held-out noise), the cheaper one takes its place: auto
+    never returns a method its own held-out check measures worse than a cheaper one.
+    `meta['auto']['holdout_check']` holds every comparison, what was kept and (where replaced)
+    the rejected plan's point counts and regions; the returned result's `meta['holdout']` is
+    its own held-out error (`evaluate_holdout`). A held-out check on coaxial lights cannot see
+    interreflection that every light makes alike (pd absorbs it for all of them): it can veto
+    a global method, not ask for one."""
     from ..outputs.holdout import evaluate_holdout, gi_model, paired_holdout
 
     auto_meta = est.meta.get("auto", {})
     if not auto_meta.get("global_method"):
         return est
     caster = caster or RayCaster(fit_scan.vertices, fit_scan.faces)  # the two scans share the mesh
-    cheaper = (["radiosity"] if gi_model(est) == "photon" and "radiosity" in options.methods else []) + ["local"]
+    local = estimate_local(fit_scan, options.local, caster)
+    cheaper = []
+    if gi_model(est) == "photon" and "radiosity" in options.methods:
+        radiosity = _run("radiosity", fit_scan, options, caster)
+        everywhere = np.ones(fit_scan.n_points, bool)
+        merged = _merge(local, radiosity, everywhere, ~everywhere)
+        cheaper.append(("radiosity", dataclasses.replace(merged, meta=dict(radiosity.meta))))
+    cheaper.append(("local", local))
     comparisons, kept, current = [], auto_meta.get("choice"), est
-    for name in cheaper:
-        other = _run(name, fit_scan, options, caster) if name == "radiosity" else \
-            estimate_local(fit_scan, options.local, caster)
+    for name, other in cheaper:
         check = paired_holdout(current, other, test_scan, caster)
         comparisons.append({"result": kept, "against": name, **check})
         if check["worse"]:
             current, kept = other, name
-    meta = dict(est.meta, auto=dict(auto_meta, holdout_check={"kept": kept, "comparisons": comparisons}))
+    record = {"kept": kept, "comparisons": comparisons}
+    meta = dict(est.meta, auto=dict(auto_meta, holdout_check=record))
     if current is est:
         return dataclasses.replace(est, meta=meta)
     vetoes = [c for c in comparisons if c["worse"]]
@@ -665,8 +674,12 @@ def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = Aut
         f"{c['result']} predicts the held-out lights worse than {c['against']} alone (squared-error difference "
         f"{c['difference']:.3g} +- {c['se']:.3g} of the mean observed square)" for c in vetoes) + f": {kept}'s result"
     logger.warning(why)
+    plan_keys = ("points_by_method", "ps_points_by_method", "regions", "extended_points", "global_methods")
+    record["rejected"] = {k: auto_meta[k] for k in plan_keys if k in auto_meta}
+    n = fit_scan.n_points
     meta["auto"].update(choice=kept, reason=why, global_method=None if kept == "local" else kept,
-                        global_methods=[] if kept == "local" else [kept])
+                        global_methods=[] if kept == "local" else [kept], points_by_method={kept: n},
+                        ps_points_by_method={"local": n}, regions=[], extended_points=0)
     meta["method_warnings"] = list(meta.get("method_warnings", [])) + [why]
     out = dataclasses.replace(current, meta=_jsonable(meta))
     evaluate_holdout(out, test_scan, caster)
