@@ -76,7 +76,7 @@ instead and takes Method II's points, and `meta['auto']['unexplained']` says so.
 regions cover most of the scan there is no noise apart from them to compare with, and the
 model's choice stands.
 
-**ps and roughness** come from Method III in its regions and wherever Method I's lobe is
+**ps and roughness** come from Method III in the regions (Method II's as well) and wherever Method I's lobe is
 neither measured nor pooled (its fill spreads lobes fitted with the interreflected light
 removed), else from Method I: outside the regions the interreflected light is negligible,
 and a lobe Method I measured there is the same light's fit without the photon map's Monte
