@@ -295,7 +295,11 @@ def test_light_method_two_leaves_unexplained_sends_its_regions_to_method_three()
     assert u["noise"] == 1.5 and u["ratio"] == pytest.approx(2.9 / 1.5) and u["ratio"] < auto._UNEXPLAINED
     radiosity.meta["residual_scale"]["region_median"] = 300.0
     assert auto._unexplained(measures, radiosity)["ratio"] == 200.0
-    radiosity.meta["residual_scale"] = {"median": 1.6, "region_median": None}  # Method II everywhere: no noise apart
+    # Method II everywhere (its region's median is its scan's): no noise apart from it, no escalation
+    radiosity.meta["residual_scale"] = {"median": 300.0, "region_median": 300.0}
+    local.meta["residual_scale"] = {"median": 2000.0, "region_median": None}
+    assert auto._unexplained(measures, radiosity)["ratio"] == 1.0
+    radiosity.meta["residual_scale"] = {"median": 1.6, "region_median": None}  # no region reported
     assert auto._unexplained(measures, radiosity) is None
 
     method = np.array([0, 0, 0, 1, 1, 1, 1, 0, 0, 0])
