@@ -147,7 +147,7 @@ def estimate(scan, method=Local(), *, holdout=None, holdout_seed: int = 0, progr
                 return out
 
             est, fit_scan, test_scan = estimate_with_holdout(scan, fit, held)
-            if name == "auto":  # it never returns a method its held-out check measures worse than Method I
+            if name == "auto":  # it never returns a method its held-out check measures worse than a cheaper one
                 est = holdout_check(est, fit_scan, test_scan, method)
             if fraction is not None:
                 est.meta["holdout"].update(fraction=float(fraction), seed=int(holdout_seed))

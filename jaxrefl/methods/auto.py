@@ -637,7 +637,7 @@ def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = Aut
     most capable first (Method II's pd with Method I's lobes, as auto uses Method II, where `est`
     models the specular interreflection too; then Method I, `options.local`), every result
     relit under `test_scan`'s held-out lights with its own interreflection model
-    (`holdout.paired_holdout`). Where the result in hand predicts the held-out images worse
+    (`holdout.held_out_chain`, each relit once). Where the result in hand predicts the held-out images worse
     than the cheaper one's (beyond the held-out noise), the cheaper one takes its place: auto
     never returns a method its own held-out check measures worse than a cheaper one.
     `meta['auto']['holdout_check']` holds every comparison, what was kept and (where replaced)
@@ -645,26 +645,25 @@ def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = Aut
     its own held-out error (`evaluate_holdout`). A held-out check on coaxial lights cannot see
     interreflection that every light makes alike (pd absorbs it for all of them): it can veto
     a global method, not ask for one."""
-    from ..outputs.holdout import evaluate_holdout, gi_model, paired_holdout
+    from ..outputs.holdout import evaluate_holdout, gi_model, held_out_chain
 
     auto_meta = est.meta.get("auto", {})
     if not auto_meta.get("global_method"):
         return est
     caster = caster or RayCaster(fit_scan.vertices, fit_scan.faces)  # the two scans share the mesh
     local = estimate_local(fit_scan, options.local, caster)
-    cheaper = []
+    names, results = [auto_meta.get("choice")], [est]
     if gi_model(est) == "photon" and "radiosity" in options.methods:
         radiosity = _run("radiosity", fit_scan, options, caster)
         everywhere = np.ones(fit_scan.n_points, bool)
         merged = _merge(local, radiosity, everywhere, ~everywhere)
-        cheaper.append(("radiosity", dataclasses.replace(merged, meta=dict(radiosity.meta))))
-    cheaper.append(("local", local))
-    comparisons, kept, current = [], auto_meta.get("choice"), est
-    for name, other in cheaper:
-        check = paired_holdout(current, other, test_scan, caster)
-        comparisons.append({"result": kept, "against": name, **check})
-        if check["worse"]:
-            current, kept = other, name
+        names.append("radiosity")
+        results.append(dataclasses.replace(merged, meta=dict(radiosity.meta)))
+    names.append("local")
+    results.append(local)
+    index, chain = held_out_chain(results, test_scan, caster)  # each result relit once
+    comparisons = [{"result": names[i], "against": names[j], **check} for j, (i, check) in enumerate(chain, 1)]
+    kept, current = names[index], results[index]
     record = {"kept": kept, "comparisons": comparisons}
     meta = dict(est.meta, auto=dict(auto_meta, holdout_check=record))
     if current is est:

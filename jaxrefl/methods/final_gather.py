@@ -283,8 +283,8 @@ def relight_observations(scan, pd, ps, alpha, observed, caster=None, *, light_bi
     configs = light_configs(scan.light_pos, n, light_bin)
     replay = PhotonReplay.build(caster, scan.vertices, scan.faces, scan.normals, configs.positions,
                                 scan.intensities()[configs.light], config_cameras(scan, configs), params,
-                                n_photons=photons_per_configuration(n_photons, m, len(configs.positions)), target_photons=target_photons, seed=seed,
-                                first_bounce=rays == 0)
+                                n_photons=photons_per_configuration(n_photons, m, len(configs.positions)),
+                                target_photons=target_photons, seed=seed, first_bounce=rays == 0)
     out = np.take_along_axis(np.asarray(replay.indirect(*params), np.float64), configs.index[..., None], axis=1)
     rays = rays_within_budget(rays, observed.sum(), ray_budget) if rays else 0
     if rays and observed.any():

@@ -31,7 +31,7 @@ from ..geometry.raycast import RayCaster
 from . import relight as rl
 
 __all__ = ["choose_holdout", "split_scan", "gi_model", "relight_settings", "holdout_error", "truth_holdout_error",
-           "evaluate_holdout", "estimate_with_holdout", "paired_holdout"]
+           "evaluate_holdout", "estimate_with_holdout", "paired_holdout", "held_out_chain"]
 
 
 def choose_holdout(n_lights: int, fraction: float | None = None, lights=None, seed: int = 0) -> np.ndarray:
@@ -203,6 +203,49 @@ def _relit(est, test_scan, caster, gi, use, settings):
                 f"{gi} interreflection unavailable ({exc}); direct light only")
 
 
+def held_out_chain(results, test_scan, caster: RayCaster | None = None) -> tuple[int, list]:
+    """The cheapest-not-worse result of `results` on `test_scan`'s held-out samples, each relit
+    once, with the interreflection its own method modelled (`gi_model`). `results` run from
+    the most capable to the cheapest; starting from the first, each next one takes the place
+    of the result in hand where that predicts the samples worse (`paired_holdout`'s test).
+
+    **Returns:** `(kept, comparisons)`: the index kept and, per later result `j`, `(i, check)`
+    with `i` the index in hand when `j` was compared and `check` `paired_holdout`'s dict."""
+    for e in results:
+        if np.shape(e.pd)[0] != test_scan.n_points:
+            raise ValueError(f"holdout: a result has {np.shape(e.pd)[0]} points, the scan {test_scan.n_points}")
+    none = {"difference": None, "se": None, "worse": False, "samples": 0}
+    if test_scan.radiance is None:
+        return 0, [(0, dict(none)) for _ in results[1:]]
+    caster = caster or RayCaster(test_scan.vertices, test_scan.faces)
+    use = _usable(test_scan, caster)
+    obs = np.asarray(test_scan.radiance, dtype=np.float64)[use]
+    scale = float(np.mean((obs**2).sum(-1))) if use.any() else 0.0
+    if use.sum() < 2 or not scale > 0:
+        return 0, [(0, dict(none, samples=int(use.sum()))) for _ in results[1:]]
+    relit = {}
+
+    def errors(i):  # squared errors (S,), the model used, a fallback note
+        if i not in relit:
+            pred, gi, note = _relit(results[i], test_scan, caster, gi_model(results[i]), use, None)
+            relit[i] = (((pred[use] - obs) ** 2).sum(-1), gi, note)
+        return relit[i]
+
+    kept, comparisons = 0, []
+    for j in range(1, len(results)):
+        (err_a, gi_a, note_a), (err_b, gi_b, note_b) = errors(kept), errors(j)
+        d = (err_a - err_b) / scale
+        mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d)))
+        check = {"difference": mean, "se": se, "worse": bool(mean > 2.0 * se), "samples": int(use.sum()),
+                 "gi": [gi_a, gi_b]}
+        if note_a or note_b:
+            check["note"] = "; ".join(n for n in (note_a, note_b) if n)
+        comparisons.append((kept, check))
+        if check["worse"]:
+            kept = j
+    return kept, comparisons
+
+
 def paired_holdout(est, other, test_scan, caster: RayCaster | None = None) -> dict:
     """`est` against `other` on the same held-out samples, each relit with the interreflection
     its own method modelled (`gi_model`): per sample the difference of their squared errors
@@ -213,28 +256,7 @@ def paired_holdout(est, other, test_scan, caster: RayCaster | None = None) -> di
     `gi` the models used (`note` where one fell back to direct light). A photon-mapped
     relighting adds its own Monte Carlo error to its side, shared by the samples of one map,
     which the standard error does not count: the check leans, slightly, against Method III."""
-    for e in (est, other):
-        if np.shape(e.pd)[0] != test_scan.n_points:
-            raise ValueError(f"holdout: a result has {np.shape(e.pd)[0]} points, the scan {test_scan.n_points}")
-    none = {"difference": None, "se": None, "worse": False, "samples": 0}
-    if test_scan.radiance is None:
-        return none
-    caster = caster or RayCaster(test_scan.vertices, test_scan.faces)
-    use = _usable(test_scan, caster)
-    obs = np.asarray(test_scan.radiance, dtype=np.float64)[use]
-    scale = float(np.mean((obs**2).sum(-1))) if use.any() else 0.0
-    if use.sum() < 2 or not scale > 0:
-        return dict(none, samples=int(use.sum()))
-    relit = [_relit(e, test_scan, caster, gi_model(e), use, None) for e in (est, other)]
-    err = [((pred[use] - obs) ** 2).sum(-1) for pred, _, _ in relit]
-    d = (err[0] - err[1]) / scale
-    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d)))
-    out = {"difference": mean, "se": se, "worse": bool(mean > 2.0 * se), "samples": int(use.sum()),
-           "gi": [gi for _, gi, _ in relit]}
-    notes = [note for _, _, note in relit if note]
-    if notes:
-        out["note"] = "; ".join(notes)
-    return out
+    return held_out_chain([est, other], test_scan, caster)[1][0][1]
 
 
 def holdout_error(est, test_scan, caster: RayCaster | None = None, gi: str = "auto",
