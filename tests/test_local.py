@@ -144,6 +144,8 @@ def test_residual_scale_is_the_noise_in_the_weights_units():
     assert 0.6 <= medians[0] <= 1.6
     assert 7.0 <= medians[1] / medians[0] <= 11.0
     assert estimate_local(scan).meta["residual_scale"]["region_median"] is None
+    with pytest.raises(ValueError, match="region"):
+        estimate_local(scan, region=np.ones(3, bool))
 
 
 def test_uncertainty_is_calibrated(convex_noisy):

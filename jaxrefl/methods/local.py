@@ -1185,6 +1185,8 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     scan, top = checks.method_input(scan)  # top: called by the user, not by another method
     if quantisation is not None and not (np.isfinite(quantisation) and quantisation >= 0):
         raise ValueError(f"quantisation: the sensor's step must be finite and >= 0, got {quantisation!r}")
+    if region is not None and np.shape(region) != (scan.n_points,):
+        raise ValueError(f"region: must be ({scan.n_points},) bool, got shape {np.shape(region)}")
     timings = {}
     t0 = time.perf_counter()
     rows = rows if rows is not None else prepare_rows(scan, options.thresholds, caster)
