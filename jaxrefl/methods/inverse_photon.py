@@ -691,23 +691,28 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_
     return theta, best, track, hist
 
 
+def _no_prior(pd):
+    """`_step_a`'s prior that changes nothing: mean and precision 0, nothing fixed, shaped as `pd`."""
+    zero = jnp.zeros_like(pd)
+    return zero, zero, jnp.zeros(pd.shape, bool)
+
+
 @partial(jax.jit, static_argnames=("static", "n_iter"))
-def _polish(data, static, index, fg, rows, theta, n_iter, prior=None):
+def _polish(data, static, index, fg, rows, theta, n_iter, prior):
     """`n_iter` steps (a) at the final lobes: `pd` to the fixed point of its own
     interreflection, undamped where that lowers the image difference (the interreflected
     share of the light below 1), with `_block`'s backtracking where it does not (a cavity
     of high albedo). Returns `theta` at the lowest image difference met. With `prior`
     (`_step_a`'s) the steps take the posterior mode and the cost adds the prior's
     `sum precision (pd - mean)^2`: pd's MAP through the interreflection, where each point's
-    pull to its material-mates also changes the light its neighbours receive."""
+    pull to its material-mates also changes the light its neighbours receive. Without one,
+    `_no_prior(pd)` (precision 0 adds exact zeros: the same steps, one compiled program)."""
     _, ps, rho = theta
+    mean, precision, fixed = prior
 
     def objective(pd, d, q):
         cost, _ = _image_difference(pd, ps, rho, rows, d, q)
-        if prior is not None:
-            mean, precision, fixed = prior
-            cost = cost + jnp.sum(jnp.where(fixed, 0.0, precision * (pd - mean) ** 2))
-        return cost
+        return cost + jnp.sum(jnp.where(fixed, 0.0, precision * (pd - mean) ** 2))
 
     def body(carry, _):
         pd, anchor = carry
@@ -1180,8 +1185,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
             jnp.asarray(ps_c), jnp.asarray(rho_c), jnp.asarray(known), jnp.asarray(sd_ps_c), jnp.asarray(sd_rho_c),
             nbr_f, fill_target, affinity=_material_affinity(jnp.asarray(pd), nbr_f, options.fill_pd_scale)))
         ps_c, rho_c = ((np.where(known, x, f) for x, f in zip((ps_c, rho_c), filled)) if keep_known else filled)
-        theta_c = _polish(replay.data, replay.static, index, fg, rows,
-                          tuple(jnp.asarray(x, dt) for x in (pd, ps_c, rho_c)), options.polish)
+        theta_c = tuple(jnp.asarray(x, dt) for x in (pd, ps_c, rho_c))
+        theta_c = _polish(replay.data, replay.static, index, fg, rows, theta_c, options.polish,
+                          _no_prior(theta_c[0]))
         fin_c = _final(replay.data, replay.static, index, fg, rows, theta_c)
         candidates.append(dict(name=name, pd=np.array(theta_c[0], np.float64), ps=ps_c, rho=rho_c, sd_ps=sd_ps_c,
                                sd_rho=sd_rho_c, known=known, own=own, fin=fin_c, cost=float(fin_c["cost"]), **extra))
