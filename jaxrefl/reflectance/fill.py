@@ -108,7 +108,14 @@ def window_fill(values, known, adjacency: sp.csr_matrix, window: int = 5, max_sw
     return FillResult(result, in_window, far)
 
 
-_LEAF_SIZE = 128
+def neighbour_tree(points) -> cKDTree:
+    """A kd-tree over `points` `(n, 3)` for the nearest-neighbour searches of the fills and the
+    prior. Sliding-midpoint splits, leaves of 64 points, cells not shrunk to their points:
+    where a query lies far from every point (across a fold from a lit face, in a material's
+    unmeasured part) its k-th neighbour sphere is wide, and with scipy's defaults it grazes
+    many small cells; this tree answers those queries 2-6x faster. The neighbours and their
+    distances are the same; points at equal distance may come in another order."""
+    return cKDTree(np.asarray(points, dtype=np.float64), leafsize=64, balanced_tree=False, compact_nodes=False)
 
 
 def nearest_candidates(points, candidates, k: int) -> np.ndarray:
@@ -120,9 +127,7 @@ def nearest_candidates(points, candidates, k: int) -> np.ndarray:
         raise ValueError("nearest_candidates: no candidate")
     pts = np.asarray(points, dtype=np.float64)
     kk = int(min(k, cand.size))
-    # Large leaves: a point far from every candidate (across a fold from a lit face) has a
-    # wide k-th neighbour sphere that grazes many small leaves' boxes; 128 halves the query.
-    _, j = cKDTree(pts[cand], leafsize=_LEAF_SIZE).query(pts, k=kk, workers=-1)
+    _, j = neighbour_tree(pts[cand]).query(pts, k=kk, workers=-1)
     return cand[np.asarray(j).reshape(len(pts), kk)]
 
 

@@ -48,11 +48,11 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import sparse
 from scipy.optimize import brentq
-from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 from scipy.stats import chi2 as chi2_dist
 
 from jaxrefl.reflectance import colour_mixture
+from jaxrefl.reflectance.fill import neighbour_tree
 
 __all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "lobes_meta", "LocalLobes", "local_lobes",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
@@ -243,7 +243,7 @@ def fit_materials(features, variances, positions, k_max: int = 6, sample: int = 
     labels[idx] = colour_mixture.assign(x[idx], v[idx], mu, tau2, log_w) if full else \
         np.argmax(_log_density(x[idx], v[idx], mu, tau2, log_w), 1)
     if not has.all():
-        _, j = cKDTree(positions[idx]).query(positions[~has], k=1)
+        _, j = neighbour_tree(positions[idx]).query(positions[~has], k=1)
         labels[~has] = labels[idx][j]
     return Materials(labels, k, bic)
 
@@ -423,7 +423,7 @@ def _nearest_mates(labels, observed, positions, k, at):
         rows = np.flatnonzero(labels[at] == m)
         if len(mates) < 2:
             continue
-        d, j = _neighbours(cKDTree(positions[mates]), mates, positions, at[rows], k)
+        d, j = _neighbours(neighbour_tree(positions[mates]), mates, positions, at[rows], k)
         dist[rows, :d.shape[1]], nbr[rows, :d.shape[1]] = d, j
     return dist, nbr
 
@@ -745,7 +745,7 @@ def _field_search(positions, mine, at, neighbours, plane=False):
     sample, design, found)`, `design` the local planes' (`_plane_design`) where `plane`, else
     None, `found` an empty dict for `_distance_spread`'s searches."""
     own_idx = np.flatnonzero(mine)
-    tree = cKDTree(positions[own_idx])
+    tree = neighbour_tree(positions[own_idx])
     dist, nbr = _neighbours(tree, own_idx, positions, at, neighbours + 1)
     usable = _usable(at, dist, nbr, neighbours)
     sample = own_idx if len(own_idx) <= _SPREAD_SAMPLE else \
