@@ -105,6 +105,11 @@ def add_estimate_options(p):
                    help="final lobes from the iterations' own fits and the fill only (default: also fit every lobe "
                         "with the shared reflectance prior through the interreflection model, pd profiled out, and "
                         "keep the lobes that explain the images better)")
+    g.add_argument("--refine", type=int, default=0,
+                   help="after the iterations, this many L-BFGS steps on the whole image difference with every "
+                        "point's pd and one lobe per material, the interreflection recomputed at each step; kept "
+                        "only where it lowers the image difference (0: none). For fixed points of the iterations "
+                        "far from the truth (a fold lit from both sides); it can trade lobes for noise elsewhere")
     g = p.add_argument_group("auto (model only what the scene needs)")
     g.add_argument("--target-error", type=float, default=0.0,
                    help="relative pd error you accept (median per region): a cheaper method that reaches it is "
@@ -136,7 +141,7 @@ def method_from_options(options) -> Local | Radiosity | Photon | Auto:
               "min_snr": o.min_snr, "window": o.window, "gather_rays": o.gather_rays,
               "gather_budget": o.gather_budget, "min_fit_p": o.min_fit_p, "fill_sd": o.fill_sd,
               "fill_pd_scale": o.fill_pd_scale, "fill_neighbours": o.fill_neighbours, "polish": o.polish,
-              "lobe_prior": getattr(o, "lobe_prior", True)}
+              "lobe_prior": getattr(o, "lobe_prior", True), "refine": getattr(o, "refine", 0)}
     if o.method == "radiosity":
         return Radiosity(**radiosity, local=local)
     if o.method == "photon":

@@ -187,8 +187,9 @@ class PhotonOptions:
     identifiability test; `fill_sd`, `fill_neighbours`, `fill_pd_scale` the lobe fill;
     `polish` steps (a) at the final lobes; `window` the ring that decides
     `interpolated` against `unresolved`; `lobe_prior` the shared prior's lobes as a second
-    candidate for the final lobes (`_lobe_posterior`; not under `local.paper`); `local` Method I
-    options of the start (Ward)."""
+    candidate for the final lobes (`_lobe_posterior`; not under `local.paper`); `refine`
+    L-BFGS steps on the whole image difference after the iterations (`_refine`; 0: none);
+    `local` Method I options of the start (Ward)."""
 
     photons: int = 1_000_000
     iterations: int = 50
@@ -210,6 +211,7 @@ class PhotonOptions:
     polish: int = 10
     window: int = 5
     lobe_prior: bool = True
+    refine: int = 0
     local: LocalOptions = field(default_factory=lambda: LocalOptions(model="ward"))
 
     def __post_init__(self):
@@ -223,6 +225,8 @@ class PhotonOptions:
             raise ValueError("fill_sd must be > 0, fill_neighbours >= 1, polish >= 0, fill_pd_scale >= 0")
         if not 0 < self.damping <= 1:
             raise ValueError("damping must lie in (0, 1]")
+        if self.refine < 0:
+            raise ValueError("refine must be >= 0")
         if not 0 <= self.retrace_ess < 1:
             raise ValueError("retrace_ess must lie in [0, 1)")
         if self.local.model != "ward":
@@ -691,6 +695,47 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_
     return theta, best, track, hist
 
 
+@partial(jax.jit, static_argnames=("static", "steps", "k"))
+def _refine(data, static, index, fg, rows, theta, free, labels, k, steps):
+    """`steps` L-BFGS steps on the image difference (Eq. 14) as a function of every point's pd
+    and one lobe `(ps, ln alpha)` per material (`labels` `(N,)` in `[0, k)`) at once, the
+    interreflected light `(D, Q)` recomputed from them at each evaluation (photon replay and
+    final gather, differentiated through). Steps (a) and (b) hold `(D, Q)` while a point moves:
+    their fixed point is one where no point can lower the cost alone, which on a glossy fold
+    lit from both sides can lie far from the joint minimum (a broad lobe and a dark pd
+    everywhere light each other as the images demand). A lobe per material, not per point: a
+    point's own few samples let a free lobe follow the noise. Only the points `free` `(N,)`
+    move (the observed ones; the lobes start at each material's median over them); pd stays
+    in (0, 1), ps in (0, PS_MAX], alpha in `ALPHA_RANGE`. Returns `(theta, cost at the start, cost
+    at theta)`."""
+    lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
+    pd0, ps0, rho0 = theta
+    eps = 1e-4
+    pdc = jnp.clip(pd0, eps, 1.0 - eps)
+    members = jax.nn.one_hot(labels, k, dtype=rho0.dtype) * free[:, None]  # (N, K)
+
+    def material_median(x):
+        return jax.vmap(lambda m: jnp.nanmedian(jnp.where(m > 0, x, jnp.nan)))(members.T)
+
+    x0 = (jnp.log(pdc / (1.0 - pdc)), jnp.log(jnp.clip(material_median(ps0), eps, PS_MAX)), material_median(rho0))
+    x0 = (x0[0], jnp.nan_to_num(x0[1], nan=np.log(eps)), jnp.nan_to_num(x0[2], nan=float(np.log(0.1))))
+
+    def unpack(x):
+        pd = jnp.where(free[:, None], jax.nn.sigmoid(x[0]), pd0)
+        ps = jnp.where(free, jnp.minimum(jnp.exp(x[1]), PS_MAX)[labels], ps0)
+        rho = jnp.where(free, jnp.clip(x[2], lo, hi)[labels], rho0)
+        return pd, ps, rho
+
+    def cost(x, _):
+        pd, ps, rho = unpack(x)
+        d, q = _parts(data, static, index, fg, pd, ps, rho)
+        return _image_difference(pd, ps, rho, rows, d, q)[0]
+
+    sol = optx.minimise(cost, optx.LBFGS(rtol=1e-7, atol=1e-7), x0, max_steps=steps, throw=False)
+    d, q = _parts(data, static, index, fg, pd0, ps0, rho0)
+    return unpack(sol.value), _image_difference(pd0, ps0, rho0, rows, d, q)[0], cost(sol.value, None)
+
+
 def _no_prior(pd):
     """`_step_a`'s prior that changes nothing: mean and precision 0, nothing fixed, shaped as `pd`."""
     zero = jnp.zeros_like(pd)
@@ -1150,6 +1195,18 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
                 best = (best[0], jnp.asarray(best_cost, dt))
                 timings["trace"] += retraces[-1]["seconds"]
 
+    refined = None
+    if options.refine:
+        t0 = time.perf_counter()
+        labels = np.zeros(scan.n_points, np.int64) if init.material is None else np.asarray(init.material)
+        theta_r, before, after = _refine(replay.data, replay.static, index, fg, rows, best[0],
+                                         jnp.asarray(use.any(1)), jnp.asarray(labels), int(labels.max()) + 1,
+                                         options.refine)
+        refined = {"steps": options.refine, "image_difference_before": float(before),
+                   "image_difference_after": float(after), "kept": bool(after < before)}
+        if refined["kept"]:  # else the iterations' last and best stand as they are
+            theta = theta_r
+        timings["refine"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     last = _final(replay.data, replay.static, index, fg, rows, theta)
     costs.append(float(last["cost"]))
@@ -1285,7 +1342,7 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         "options": {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in asdict(options).items()},
         "seconds": timings,
         "image_difference": {"cost": costs, "mean_abs": mads, "best": float(fin_best["cost"])},
-        "best_iteration": best_iteration,
+        "best_iteration": best_iteration, "refine": refined,
         "retraces": retraces, "ess": ess_log, "method_warnings": method_warnings,
         "photons_per_configuration": photons, "light_configurations": n_cfg,
         "stored_photons": int(replay.n_photons),
