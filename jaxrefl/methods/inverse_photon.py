@@ -1106,7 +1106,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     **Returns:** `Estimate` (model 'ward') with `meta['method'] == 'photon'`;
     `meta['image_difference']` per iteration (`cost` Eq. 14 noise-weighted through the photons
     of that iteration, `mean_abs` [W/(sr m^2)]; `best` the best iterate's cost through the last
-    photons), `meta['best_iteration']`, re-traces, effective
+    photons), `meta['best_iteration']`, `meta['refine']` (with `options.refine`: the image
+    difference before and after, and whether it was kept), re-traces, effective
     sample sizes and seconds per stage; `meta['misfit']` where the scan has Ward ground
     truth (`_misfit`). `progress(done, total)` is called after
     every block of iterations when given.
