@@ -7,11 +7,11 @@ vertices, 12 lights, 2M photons per light, 50 iterations) on direct-only radianc
 error says nothing: the model adds interreflection the images lack. Here the same object,
 rig and lights are rendered with global illumination by the independent path tracer
 (`data_synth.pathtrace`, `--samples` paths per observation, 1 % noise, 12 bits), once, and
-cached as a scan bundle (`data_synth.zoo.gi_cache_dir()`, about 10-30 min on 2 cores at
-512 paths). Methods I and III (several operating points, the paper's last) run on it and
-on the same object at a small resolution (the size of the other benchmarks' scenes,
-same lights, same paths), so the error at the paper's size is set beside the error the
-small scenes reach. Reported per run: seconds (the first run of a process compiles),
+cached as a scan bundle (`data_synth.zoo.gi_cache_dir()`; about 20 min at 512 paths, the
+path tracer on one core). Methods I and III (several operating points, the paper's among
+them, `refine` and a larger final-gather budget) run on it and on the same object at a small
+resolution (the size of the other benchmarks' scenes, same lights, same paths), so the error
+at the paper's size is set beside the error the small scenes reach. Reported per run: seconds (the first run of a process compiles),
 median relative pd error over all points and over observed points, mean relative pd error
 of observed points within 2 cm of the fold and farther (as `inverse_photon_bench`), median
 relative ps and roughness errors over observed points, the share measured or pooled, the
