@@ -1324,7 +1324,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
             prior = tuple(jnp.asarray(x) for x in (np.where(on, diffuse.mean, 0.0).astype(dt), precision.astype(dt),
                                                     fixed))
             theta_p = _polish(replay.data, replay.static, index, fg, rows,
-                              tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(alpha))), options.polish, prior)
+                              tuple(jnp.asarray(x, dt) for x in (pd, ps, np.log(np.clip(alpha, *ALPHA_RANGE)))),
+                              options.polish, prior)
             fin_p = _final(replay.data, replay.static, index, fg, rows, theta_p)
             pd = np.array(theta_p[0], np.float64)
             info = np.asarray(fin_p["info_pd"], np.float64) / scale
