@@ -313,8 +313,8 @@ def test_options_are_checked():
 
 
 def test_refine_never_raises_the_image_difference(convex, convex_photon):
-    """`refine` (L-BFGS on the whole image difference, one lobe per material) returns the
-    iterations' best where its steps did not lower the image difference, and reports both."""
+    """`refine` (L-BFGS on the whole image difference, one pd and lobe per material) leaves the
+    estimate as it was where its steps did not lower the image difference, and reports both."""
     est = estimate_photon(convex, PhotonOptions(**CONVEX_OPTIONS, refine=10))
     r = est.meta["refine"]
     assert r["steps"] == 10 and np.isfinite(r["image_difference_before"]) and np.isfinite(r["image_difference_after"])
@@ -368,8 +368,8 @@ def test_refine_leaves_the_alternations_fixed_point_on_a_fold_lit_from_both_side
     """Glossy Object E under the paper's 12 lights (both groups of `benchmarks.paper_gi`), full
     GI: steps (a) and (b), each holding the interreflected light, settle at a broad lobe and a
     dark pd that light each other as the images demand (pd 16 % off, alpha 120 %, image
-    difference twice the truth's); L-BFGS on the whole image difference, a lobe per material,
-    walks down to the truth (measured: pd 1.6 %, ps 5 %, alpha 3 %, `RESULTS_notes.md`)."""
+    difference twice the truth's); L-BFGS on the whole image difference, one pd and lobe per
+    material, walks down to the truth (measured: pd 0.9 %, ps and alpha 2 %, `RESULTS_notes.md`)."""
     from benchmarks.inverse_photon_bench import PAPER_LIGHTS, TILT
 
     scan, _ = make_scan("E", resolution=40, setup="glossy", model="ward", rig="pinhole", tilt_deg=TILT,

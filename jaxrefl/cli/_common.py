@@ -106,10 +106,10 @@ def add_estimate_options(p):
                         "with the shared reflectance prior through the interreflection model, pd profiled out, and "
                         "keep the lobes that explain the images better)")
     g.add_argument("--refine", type=int, default=0,
-                   help="after the iterations, this many L-BFGS steps on the whole image difference with every "
-                        "point's pd and one lobe per material, the interreflection recomputed at each step; kept "
-                        "only where it lowers the image difference (0: none). For fixed points of the iterations "
-                        "far from the truth (a fold lit from both sides); it can trade lobes for noise elsewhere")
+                   help="after the iterations, this many L-BFGS steps on the whole image difference over one pd "
+                        "and one lobe per material, the interreflection recomputed at each step; kept only where "
+                        "it explains the images better, the per-point fits then start from it (0: none). Leaves "
+                        "fixed points of the iterations far from the truth (a glossy fold lit from both sides)")
     g = p.add_argument_group("auto (model only what the scene needs)")
     g.add_argument("--target-error", type=float, default=0.0,
                    help="relative pd error you accept (median per region): a cheaper method that reaches it is "

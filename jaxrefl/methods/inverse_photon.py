@@ -188,7 +188,8 @@ class PhotonOptions:
     `polish` steps (a) at the final lobes; `window` the ring that decides
     `interpolated` against `unresolved`; `lobe_prior` the shared prior's lobes as a second
     candidate for the final lobes (`_lobe_posterior`; not under `local.paper`); `refine`
-    L-BFGS steps on the whole image difference after the iterations (`_refine`; 0: none);
+    L-BFGS steps on the whole image difference over one pd and lobe per material after the
+    iterations, kept where it explains the images better (`_refine`; 0: none);
     `local` Method I options of the start (Ward)."""
 
     photons: int = 1_000_000
@@ -697,31 +698,35 @@ def _block(data, static, index, fg, rows, lobe_rows, nbr, theta, best, track, n_
 
 @partial(jax.jit, static_argnames=("static", "steps", "k"))
 def _refine(data, static, index, fg, rows, theta, free, labels, k, steps):
-    """`steps` L-BFGS steps on the image difference (Eq. 14) as a function of every point's pd
-    and one lobe `(ps, ln alpha)` per material (`labels` `(N,)` in `[0, k)`) at once, the
-    interreflected light `(D, Q)` recomputed from them at each evaluation (photon replay and
-    final gather, differentiated through). Steps (a) and (b) hold `(D, Q)` while a point moves:
-    their fixed point is one where no point can lower the cost alone, which on a glossy fold
-    lit from both sides can lie far from the joint minimum (a broad lobe and a dark pd
-    everywhere light each other as the images demand). A lobe per material, not per point: a
-    point's own few samples let a free lobe follow the noise. Only the points `free` `(N,)`
-    move (the observed ones; the lobes start at each material's median over them); pd stays
-    in (0, 1), ps in (0, PS_MAX], alpha in `ALPHA_RANGE`. Returns `(theta, cost at the start, cost
-    at theta)`."""
+    """`steps` L-BFGS steps on the image difference (Eq. 14) as a function of one pd `(3,)` and
+    one lobe `(ps, ln alpha)` per material (`labels` `(N,)` in `[0, k)`), the interreflected
+    light `(D, Q)` recomputed from them at each evaluation (photon replay and final gather,
+    differentiated through), from each material's median over the points `free` `(N,)` (the
+    observed ones; only they move). Steps (a) and (b) hold `(D, Q)` while a point moves: their
+    fixed point is one where no point can lower the cost alone, which on a glossy fold lit
+    from both sides can lie far from the joint minimum (a broad lobe and a dark pd everywhere
+    light each other as the images demand). A few parameters per material, not per point:
+    with a pd or a lobe per point the whole-cost minimum follows the photon map's and the
+    gather's Monte Carlo noise; the caller keeps the result only where it explains the images
+    better than the iterations did, and the per-point stages that follow (lobe fill or prior,
+    pd polish) start from it. pd stays in (0, 1), ps in (0, PS_MAX], alpha in `ALPHA_RANGE`.
+    Returns `(theta, cost at the start, cost at theta)`."""
     lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
     pd0, ps0, rho0 = theta
     eps = 1e-4
-    pdc = jnp.clip(pd0, eps, 1.0 - eps)
     members = jax.nn.one_hot(labels, k, dtype=rho0.dtype) * free[:, None]  # (N, K)
 
     def material_median(x):
         return jax.vmap(lambda m: jnp.nanmedian(jnp.where(m > 0, x, jnp.nan)))(members.T)
 
-    x0 = (jnp.log(pdc / (1.0 - pdc)), jnp.log(jnp.clip(material_median(ps0), eps, PS_MAX)), material_median(rho0))
-    x0 = (x0[0], jnp.nan_to_num(x0[1], nan=np.log(eps)), jnp.nan_to_num(x0[2], nan=float(np.log(0.1))))
+    pd_m = jnp.clip(jnp.nan_to_num(jnp.stack([material_median(pd0[:, c]) for c in range(3)], 1), nan=0.5),
+                    eps, 1.0 - eps)
+    x0 = (jnp.log(pd_m / (1.0 - pd_m)),
+          jnp.nan_to_num(jnp.log(jnp.clip(material_median(ps0), eps, PS_MAX)), nan=np.log(eps)),
+          jnp.nan_to_num(material_median(rho0), nan=float(np.log(0.1))))
 
     def unpack(x):
-        pd = jnp.where(free[:, None], jax.nn.sigmoid(x[0]), pd0)
+        pd = jnp.where(free[:, None], jax.nn.sigmoid(x[0])[labels], pd0)
         ps = jnp.where(free, jnp.minimum(jnp.exp(x[1]), PS_MAX)[labels], ps0)
         rho = jnp.where(free, jnp.clip(x[2], lo, hi)[labels], rho0)
         return pd, ps, rho
