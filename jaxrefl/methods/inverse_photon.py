@@ -710,7 +710,7 @@ def _refine(data, static, index, fg, rows, theta, free, labels, k, steps):
     gather's Monte Carlo noise; the caller keeps the result only where it explains the images
     better than the iterations did, and the per-point stages that follow (lobe fill or prior,
     pd polish) start from it. pd stays in (0, 1), ps in (0, PS_MAX], alpha in `ALPHA_RANGE`.
-    Returns `(theta, cost at the start, cost at theta)`."""
+    Returns `(theta, its cost)`."""
     lo, hi = np.log(ALPHA_RANGE[0]), np.log(ALPHA_RANGE[1])
     pd0, ps0, rho0 = theta
     eps = 1e-4
@@ -737,8 +737,7 @@ def _refine(data, static, index, fg, rows, theta, free, labels, k, steps):
         return _image_difference(pd, ps, rho, rows, d, q)[0]
 
     sol = optx.minimise(cost, optx.LBFGS(rtol=1e-7, atol=1e-7), x0, max_steps=steps, throw=False)
-    d, q = _parts(data, static, index, fg, pd0, ps0, rho0)
-    return unpack(sol.value), _image_difference(pd0, ps0, rho0, rows, d, q)[0], cost(sol.value, None)
+    return unpack(sol.value), cost(sol.value, None)
 
 
 def _no_prior(pd):
@@ -1205,9 +1204,9 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     if options.refine:
         t0 = time.perf_counter()
         labels = np.zeros(scan.n_points, np.int64) if init.material is None else np.asarray(init.material)
-        theta_r, before, after = _refine(replay.data, replay.static, index, fg, rows, best[0],
-                                         jnp.asarray(use.any(1)), jnp.asarray(labels), int(labels.max()) + 1,
-                                         options.refine)
+        before = best[1]  # the best iterate's cost through these photons (re-costed at every re-trace)
+        theta_r, after = _refine(replay.data, replay.static, index, fg, rows, best[0], jnp.asarray(use.any(1)),
+                                 jnp.asarray(labels), int(labels.max()) + 1, options.refine)
         refined = {"steps": options.refine, "image_difference_before": float(before),
                    "image_difference_after": float(after), "kept": bool(after < before)}
         if refined["kept"]:  # else the iterations' last and best stand as they are
