@@ -113,7 +113,7 @@ def neighbour_tree(points) -> cKDTree:
     prior. Sliding-midpoint splits, leaves of 64 points, cells not shrunk to their points:
     where a query lies far from every point (across a fold from a lit face, in a material's
     unmeasured part) its k-th neighbour sphere is wide, and with scipy's defaults it grazes
-    many small cells; this tree answers those queries 2-6x faster. The neighbours and their
+    many small cells (measurements: `benchmarks/RESULTS_notes.md`). The neighbours and their
     distances are the same; points at equal distance may come in another order."""
     return cKDTree(np.asarray(points, dtype=np.float64), leafsize=64, balanced_tree=False, compact_nodes=False)
 
