@@ -167,6 +167,8 @@ logger = logging.getLogger(__name__)
 #: photon powers grow without limit along paths).
 PS_MAX = 1.0
 _GRID = 16
+#: Matrix products at full float32 precision (a GPU's default rounds their inputs to TF32).
+_EXACT = jax.lax.Precision.HIGHEST
 #: Most rows a material's spread about its neighbourhood lobes is chosen on (`_local_spread`).
 _EVIDENCE_ROWS = 2000
 
@@ -363,7 +365,7 @@ def _joint_sums(rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, p, r, b1, inv11):
     """`(b, a)` of one row at `ln alpha = rho` (`_joint_coefficients`), pd profiled out:
     `b = b2 - sum_c s12_c b1_c / s11_c`, `a = s22 - sum_c s12_c^2 / s11_c`."""
     k = brdf.ward_specular(1.0, rho, ci, co, th)
-    s12 = k @ p + r
+    s12 = jnp.matmul(k, p, precision=_EXACT) + r
     b = jnp.sum(k * a_m) + c_sq - jnp.sum(s12 * b1 * inv11)
     a = jnp.sum(k * k * b_m + k * c_m) + c_qq - jnp.sum(s12 * s12 * inv11)
     return b, a
@@ -380,7 +382,7 @@ def _joint_info(ps, rho, ci, co, th, a_m, b_m, c_m, c_sq, c_qq, p, r, b1, inv11)
     """One row's Gauss-Newton information of `(ps, rho)` at `(ps, rho)`, pd profiled out (unit
     noise): `(i_pp, i_pr, i_rr)`, and `(s12, d12)` `(3,)`, pd's cross terms with ps and rho."""
     k, dk = jax.jvp(lambda x: brdf.ward_specular(1.0, x, ci, co, th), (rho,), (jnp.ones_like(rho),))
-    s12, d12 = k @ p + r, ps * (dk @ p)
+    s12, d12 = jnp.matmul(k, p, precision=_EXACT) + r, ps * jnp.matmul(dk, p, precision=_EXACT)
     i_pp = jnp.sum(k * k * b_m + k * c_m) + c_qq - jnp.sum(s12 * s12 * inv11)
     i_pr = ps * jnp.sum(dk * (k * b_m + 0.5 * c_m)) - jnp.sum(s12 * d12 * inv11)
     i_rr = ps * ps * jnp.sum(dk * dk * b_m) - jnp.sum(d12 * d12 * inv11)

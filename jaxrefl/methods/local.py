@@ -598,8 +598,11 @@ def _material_reduced(prep, rho, labels, weights, model):
     """`_reduced` summed per material on one chunk: `rho` `(G, K)` ln roughness per grid
     value and material, `labels` `(n,)`, `weights` `(n,)` per row -> `(G, 3, K)`."""
     per_row = _reduced(prep, rho[:, labels], model=model)
-    member = jax.nn.one_hot(labels, rho.shape[1], dtype=per_row.dtype) * weights[:, None]
-    return jnp.einsum("gqn,nk->gqk", per_row, member)
+    # A segment sum, not a product with a one-hot matrix: a row left out (weight 0) whose sums
+    # overflow adds nothing rather than inf * 0 = NaN, and a GPU does not round to TF32.
+    weighted = jnp.where(weights[None, None] > 0, per_row * weights[None, None], 0.0)
+    summed = jax.ops.segment_sum(jnp.moveaxis(weighted, -1, 0), labels, num_segments=rho.shape[1])
+    return jnp.moveaxis(summed, 0, -1)
 
 
 @partial(jax.jit, static_argnames=("model", "steps"))

@@ -121,7 +121,8 @@ def em_batch(x, v, weight, resp, active, iterations=100):
             g = _sym3_matvec(inv, jnp.where(present[:, None], xx[:, None] - mu[None], 0.0))
             gg = jnp.sum(resp[:, :, None] * jnp.stack([g[..., i] * g[..., j] for i, j in _PAIRS], -1), 0)
             full = _sym3_full(cov)
-            delta = full @ _sym3_full(gg - rinv.sum(0)) @ full / jnp.maximum(nk, 1e-30)[:, None, None]
+            inner = jnp.matmul(full, _sym3_full(gg - rinv.sum(0)), precision=jax.lax.Precision.HIGHEST)
+            delta = jnp.matmul(inner, full, precision=jax.lax.Precision.HIGHEST) / jnp.maximum(nk, 1e-30)[:, None, None]
             cov = cov + jnp.stack([delta[:, i, j] for i, j in _PAIRS], -1)
             cov = cov + jnp.maximum(_VAR_FLOOR - _sym3_smallest(cov), 0.0)[:, None] * eye6[None]
             logp, inv = _log_density(x, v_in, mu, cov, log_w)

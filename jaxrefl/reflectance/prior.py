@@ -270,10 +270,24 @@ class MaterialLobes:
 
 
 def _profile(c, a, b):
-    """chi^2 at the best ps >= 0 and that ps, elementwise."""
+    """chi^2 at the best ps >= 0 and that ps, elementwise; chi^2 inf where it overflows (the
+    sums of a sharp lobe can pass float64's range)."""
     a_safe = np.where(a > 0, a, 1.0)
-    ps = np.where((a > 0) & (b > 0), b / a_safe, 0.0)
-    return c - 2.0 * ps * b + ps * ps * a, ps
+    with np.errstate(over="ignore", invalid="ignore"):
+        ps = np.where((a > 0) & (b > 0), b / a_safe, 0.0)
+        chi2 = c - 2.0 * ps * b + ps * ps * a
+    return np.where(np.isfinite(chi2), chi2, np.inf), ps
+
+
+def _parabola(y0, y1, y2, h):
+    """The vertex of the parabola through `(-h, y0)`, `(0, y1)`, `(h, y2)`: its offset from the
+    middle, clipped to `[-h, h]`, and its curvature `d^2 y / dx^2`. Offset 0 and curvature 0
+    (no information) where the parabola is not convex or a value is not finite."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        curv = (y0 - 2 * y1 + y2) / h**2
+        ok = np.isfinite(y0) & np.isfinite(y1) & np.isfinite(y2) & np.isfinite(curv) & (curv > 0)
+        shift = np.where(ok, -0.5 * (y2 - y0) / (h * np.where(ok, curv, 1.0)), 0.0)
+    return np.clip(shift, -h, h), np.where(ok, curv, 0.0)
 
 
 def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 3.0,
@@ -301,7 +315,7 @@ def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 
         grid_sums = material_sums(np.broadcast_to(grid[:, None], (len(grid), k)), labels, k, inv_s2)
     c, a, b = np.moveaxis(np.asarray(grid_sums, np.float64), 1, 0)
     chi2, _ = _profile(c, a, b)
-    best = np.argmin(np.where(np.isfinite(chi2), chi2, np.inf), axis=0)  # (K,)
+    best = np.argmin(chi2, axis=0)  # (K,)
     step = float(np.mean(np.diff(grid)))
     offsets = np.linspace(-step, step, 9)
     centre = grid[best]
@@ -311,9 +325,7 @@ def material_lobes(material_sums, labels, k, inv_s2, rho_grid, min_snr: float = 
     cols = np.arange(k)
     y0, y1, y2 = chi2[j - 1, cols], chi2[j, cols], chi2[j + 1, cols]
     h = offsets[1] - offsets[0]
-    curv = (y0 - 2 * y1 + y2) / h**2  # d^2 chi2 / d rho^2
-    shift = np.where(curv > 0, -0.5 * (y2 - y0) / (h * np.where(curv > 0, curv, 1.0)), 0.0)
-    shift = np.clip(shift, -h, h)
+    shift, curv = _parabola(y0, y1, y2, h)  # curv: d^2 chi2 / d rho^2
     rho = centre + offsets[j] + shift
     c, a, b = np.moveaxis(material_sums(rho[None], labels, k, inv_s2), 1, 0)
     _, ps = _profile(c[0], a[0], b[0])
@@ -373,14 +385,14 @@ def _grid_fit(sums, grid, bound):
     parabola through the grid's best value and its neighbours; variances of ps (`1 / a`) and
     of rho (`2 / curvature` of chi^2). Returns `(ps, rho, var_ps, var_rho)`, each `(n,)`."""
     c, a, b = sums[:, 0], sums[:, 1], sums[:, 2]
-    ps_g = np.minimum(np.where((a > 0) & (b > 0), b / np.where(a > 0, a, 1.0), 0.0), bound[:, None])
-    chi2 = c - 2.0 * ps_g * b + ps_g * ps_g * a
+    with np.errstate(over="ignore", invalid="ignore"):
+        ps_g = np.minimum(np.where((a > 0) & (b > 0), b / np.where(a > 0, a, 1.0), 0.0), bound[:, None])
+        chi2 = c - 2.0 * ps_g * b + ps_g * ps_g * a
+    chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
     cols = np.arange(c.shape[1])
-    g = np.clip(np.argmin(np.where(np.isfinite(chi2), chi2, np.inf), axis=0), 1, len(grid) - 2)
+    g = np.clip(np.argmin(chi2, axis=0), 1, len(grid) - 2)
     h = float(grid[1] - grid[0])
-    y0, y1, y2 = chi2[g - 1, cols], chi2[g, cols], chi2[g + 1, cols]
-    curv = (y0 - 2 * y1 + y2) / h**2
-    shift = np.clip(np.where(curv > 0, -0.5 * (y2 - y0) / (h * np.where(curv > 0, curv, 1.0)), 0.0), -h, h)
+    shift, curv = _parabola(chi2[g - 1, cols], chi2[g, cols], chi2[g + 1, cols], h)
     t = shift / h
     # The coefficients between grid values, linearly (ps and its variance at the refined rho).
     lo = np.where(t >= 0, g, g - 1)
