@@ -271,6 +271,8 @@ def child(spec: dict) -> dict:
 
     if spec.get("x64"):
         jax.config.update("jax_enable_x64", True)
+    if spec.get("platform"):  # "cpu" or "cuda": the backend this child runs JAX on
+        jax.config.update("jax_platforms", spec["platform"])
     if spec.get("compile_cache"):  # JAX's persistent cache, shared by this method's cells
         jax.config.update("jax_compilation_cache_dir", spec["compile_cache"])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -316,6 +318,9 @@ def child(spec: dict) -> dict:
         out[f"rss_after_{which}"] = _rss_bytes()
         meta = est.meta
         info = {"status": {s.name: int(n) for s, n in est.status_counts().items()}}
+        if scan.true_pd is not None:  # median relative pd error over all points (the truth is in the scan)
+            rel = np.abs(np.asarray(est.pd) - scan.true_pd) / np.maximum(scan.true_pd, 1e-6)
+            info["pd_median_rel"] = float(np.median(rel.mean(axis=1)))
         if "form_factors" in meta:
             info["form_factors"] = meta["form_factors"]
         if meta.get("method") == "auto":
