@@ -935,7 +935,9 @@ def _select_prior(first, second, chosen, labels):
     return prior_mod.LobePrior(*(np.where(pick, getattr(second, f), getattr(first, f)) for f in
                                  ("mean_ps", "var_ps", "mean_rho", "var_rho", "available")),
                                np.where(chosen, second.spread_ps, first.spread_ps),
-                               np.where(chosen, second.spread_rho, first.spread_rho))
+                               np.where(chosen, second.spread_rho, first.spread_rho),
+                               *(np.where(pick, getattr(second, f), getattr(first, f)) for f in
+                                 ("cover_var_ps", "cover_var_rho", "widened")))
 
 
 def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, options):
@@ -1033,8 +1035,10 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
     measured, pooled = prior_mod.status_from_posterior(own, var_ps, var_rho, prior)
     conflict = prior_mod.prior_conflict(chi2_map, own_fit["chi2"], s2, avail)
     measured, pooled = (measured | (own & conflict)) & observed_any, pooled & ~conflict & observed_any
-    post_ps = np.where(avail, 1.0 / (1.0 / var_ps + 1.0 / np.where(avail, prior.var_ps, 1.0)), var_ps)
-    post_rho = np.where(avail, 1.0 / (1.0 / var_rho + 1.0 / np.where(avail, prior.var_rho, 1.0)), var_rho)
+    # the uncertainty under the prior widened where the measured lobes around a point disagree
+    # with it (`prior.cover_measured`); the estimate keeps the prior's mode
+    post_ps = np.where(avail, 1.0 / (1.0 / var_ps + 1.0 / np.where(avail, prior.cover_var_ps, 1.0)), var_ps)
+    post_rho = np.where(avail, 1.0 / (1.0 / var_rho + 1.0 / np.where(avail, prior.cover_var_rho, 1.0)), var_rho)
     mine = conflict | ~avail
     ps = np.where(mine, ps_own, ps_map)
     rho = np.where(mine, rho_own, rho_map)
@@ -1044,7 +1048,8 @@ def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, o
     meta = {"materials": k, "bic": {str(key): float(b) for key, b in materials.bic.items()},
             "material_lobes": prior_mod.lobes_meta(lobes, prior.spread_ps, prior.spread_rho,
                                                   partial(brdf.ps_bound, "ward")),
-            "points_pooled": int(pooled.sum()), "points_in_conflict_with_prior": int(conflict.sum())}
+            "points_pooled": int(pooled.sum()), "points_in_conflict_with_prior": int(conflict.sum()),
+            "points_with_widened_prior": int((prior.widened & observed_any).sum())}
     for m, entry in enumerate(meta["material_lobes"]):
         entry["neighbours"] = int(local_fit.neighbours[m])  # 0: the whole material
         entry["prior_field"] = "neighbourhood lobes" if field[m] else "own lobes"

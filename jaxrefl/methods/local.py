@@ -1050,6 +1050,10 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
                            "v_rho": np.where(prior.available, prior.var_rho, np.inf), "s2": s2_safe},
                           rho_own, options.steps)
     var = np.where(np.isfinite(post["var"]), post["var"] * s2_safe[:, None], np.inf)
+    # The lobe's uncertainty under the prior widened where the measured lobes around a point
+    # disagree with it (`prior.cover_measured`); the estimate keeps the prior's mode.
+    var[:, 3] = prior_mod.covered_variance(var[:, 3], prior.var_ps, prior.cover_var_ps)
+    var[:, 4] = prior_mod.covered_variance(var[:, 4], prior.var_rho, prior.cover_var_rho)
     sd = np.sqrt(np.maximum(var, 0.0))
     measured, pooled = prior_mod.status_from_posterior(own, fit["std_ps"] ** 2, fit["std_ln_roughness"] ** 2, prior)
     # Prior-data conflict: a point whose own samples fit the prior's lobe worse than their own
@@ -1069,6 +1073,8 @@ def _posterior_lobes(scan, fit, observed_any, dark, options):
         entry["neighbours"] = int(local.neighbours[m])  # 0: the whole material
         entry["spread_local_ps"], entry["spread_local_ln_roughness"] = (float(v) for v in spread[m])
     meta["points_in_conflict_with_prior"] = int(conflict.sum())
+    # priors widened to cover the measured lobes around them (`prior.cover_measured`)
+    meta["points_with_widened_prior"] = int((prior.widened & observed_any).sum())
     measured, pooled = measured & observed_any, pooled & observed_any
     # The lobe an unresolved point reports: its material's prior lobe; in a material with no
     # prior (joint lobe not identifiable, no point with its own) whose samples still show a

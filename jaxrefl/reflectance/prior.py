@@ -54,7 +54,8 @@ from scipy.stats import chi2 as chi2_dist
 from jaxrefl.reflectance import colour_mixture
 from jaxrefl.reflectance.fill import neighbour_tree
 
-__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "lobes_meta", "LocalLobes", "local_lobes",
+__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "lobes_meta", "LocalLobes", "local_lobes", "cover_measured",
+           "covered_variance",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
            "spread_by_evidence", "status_from_posterior", "prior_conflict", "material_totals", "weighted_rows"]
 
@@ -582,7 +583,10 @@ class LobePrior:
     """Per point `(N,)`: prior mean and variance of ps and of `rho` (ln roughness);
     `available` where a prior exists (its material's lobe is identifiable or the material
     has points with their own lobe); `spread_ps`, `spread_rho` `(K,)` the within-material
-    spreads found (variances)."""
+    spreads found (variances). `cover_var_ps`, `cover_var_rho` `(N,)`: the variances raised
+    to cover the measured lobes around each point (`cover_measured`; `widened` where either
+    is): a point's estimate keeps the prior's mean and width (the best guess where most of
+    its neighbours agree), and its reported uncertainty takes these (`covered_variance`)."""
 
     mean_ps: np.ndarray
     var_ps: np.ndarray
@@ -591,6 +595,9 @@ class LobePrior:
     available: np.ndarray
     spread_ps: np.ndarray
     spread_rho: np.ndarray
+    cover_var_ps: np.ndarray | None = None  # (N,) the variances `cover_measured` widened
+    cover_var_rho: np.ndarray | None = None
+    widened: np.ndarray | None = None  # (N,) bool: where either is wider than var_ps / var_rho
 
 
 def _robust_spread(deviation, own_var):
@@ -966,8 +973,83 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
         out[key] = np.where(available, np.maximum(out[key], _VAR_FLOOR), np.inf)
     for key in ("mean_ps", "mean_rho"):
         out[key] = np.where(available, out[key], 0.0)
+    cover, widened = {}, np.zeros(n, bool)
+    for name, value, var in (("ps", ps, var_ps), ("rho", rho, var_rho)):
+        cover[name], more = cover_measured(value, var, own & fitted, out["mean_" + name], out["var_" + name],
+                                           available, labels, positions, neighbours)
+        widened |= more
     return LobePrior(out["mean_ps"], out["var_ps"], out["mean_rho"], out["var_rho"], available,
-                     spreads[0], spreads[1])
+                     spreads[0], spreads[1], cover["ps"], cover["rho"], widened)
+
+
+def covered_variance(var_post, var_prior, var_cover):
+    """`(N,)`: a posterior variance `var_post` with its prior's variance `var_prior` replaced
+    by the wider `var_cover` (`LobePrior.cover_var_*`), the data's information
+    `1 / var_post - 1 / var_prior` kept (Gaussian approximation); `var_post` where the prior
+    was not widened."""
+    with np.errstate(divide="ignore"):
+        info = np.maximum(1.0 / var_post - 1.0 / var_prior, 0.0)
+        return np.where(var_cover > var_prior, 1.0 / (info + 1.0 / var_cover), var_post)
+
+
+def _cochran_q(t, dev2, var, use):
+    """`(m,)`: `sum_j dev2_j / (var_j + t)` over each row's `use`d neighbours (`(m, k)`), `t` `(m,)`."""
+    return np.sum(np.where(use, dev2 / (var + t[:, None]), 0.0), axis=1)
+
+
+def cover_measured(value, var, own, mean, prior_var, tested, labels, positions, neighbours: int = 16,
+                   alpha: float | None = None):
+    """A prior checked against the measured values around each point, and widened where it
+    does not cover them.
+
+    `value`, `var` `(N,)`: the points' own estimates and variances, `own` `(N,)` where they are
+    measured; `mean`, `prior_var` `(N,)` each point's prior; `tested` `(N,)` the points to check.
+    Under the prior, the own values `v_j` of a point's `neighbours` nearest measured
+    material-mates (itself left out) scatter about its mean with variance `prior_var + var_j`,
+    so `Q = sum_j (v_j - mean)^2 / (prior_var + var_j)` is chi^2 with as many degrees of freedom
+    as neighbours (Cochran's heterogeneity statistic). Where `Q` exceeds what chance allows over
+    the tested points (Bonferroni at `alpha`, as `prior_conflict`), the neighbourhood holds
+    lobes the prior does not describe (a glaze the colour clusters merged with its body, a
+    border between lobes): its variance is raised to the larger of the `t` at which `Q(t)` equals
+    its degrees of freedom (method of moments, Paule & Mandel 1982) and the largest
+    `(v_j - mean)^2 - var_j`, so that every measured lobe around the point is within one
+    standard deviation of its prior: the point may be any of them (a random-effects spread
+    alone covers a few outlying lobes among many poorly), and its uncertainty reports the
+    disagreement instead of a narrow, possibly wrong value. Returns `(variance, widened)`,
+    `(N,)`.
+    """
+    alpha = _CONFLICT_ALPHA if alpha is None else alpha
+    out, widened = np.array(prior_var, np.float64), np.zeros(len(value), bool)
+    var_f = np.maximum(np.where(own, var, np.inf), _VAR_FLOOR)
+    for m in np.unique(labels[tested]):
+        mates = np.flatnonzero(own & (labels == m) & np.isfinite(value) & np.isfinite(var_f))
+        at = np.flatnonzero(tested & (labels == m) & np.isfinite(prior_var))
+        if len(mates) < 2 or not len(at):
+            continue
+        kk = min(neighbours + 1, len(mates))
+        dist, j = neighbour_tree(positions[mates]).query(positions[at], k=kk, workers=-1)
+        nbr = mates[np.asarray(j).reshape(len(at), kk)]
+        use = nbr != at[:, None]
+        use &= np.cumsum(use, axis=1) <= neighbours
+        dof = use.sum(1)
+        dev2 = np.where(use, (value[nbr] - mean[at][:, None]) ** 2, 0.0)
+        vj = np.where(use, var_f[nbr], 1.0)
+        limit = chi2_dist.isf(alpha / len(at), np.maximum(dof, 1))
+        wide = (dof >= 2) & (_cochran_q(out[at], dev2, vj, use) > limit)
+        if not wide.any():
+            continue
+        dev2, vj, use, dof = dev2[wide], vj[wide], use[wide], dof[wide]
+        # Q(t) falls with t and Q(sum dev2 / dof) <= dof: bisection in ln t between the two.
+        lo = np.log(np.maximum(out[at[wide]], _VAR_FLOOR))
+        hi = np.log(np.maximum(dev2.sum(1) / dof, np.exp(lo)))
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            above = _cochran_q(np.exp(mid), dev2, vj, use) > dof
+            lo, hi = np.where(above, mid, lo), np.where(above, hi, mid)
+        farthest = np.max(np.where(use, dev2 - vj, 0.0), axis=1)
+        out[at[wide]] = np.maximum(out[at[wide]], np.maximum(np.exp(hi), farthest))
+        widened[at[wide]] = True
+    return out, widened
 
 
 @dataclass(frozen=True)
