@@ -119,7 +119,7 @@ SUBSTAGES = (
     ("jaxrefl.methods.photon", "PhotonReplay.build", "III: photon trace + replay build"),
     ("jaxrefl.methods.final_gather", "gather_rays", "III: final gather rays"),
     ("jaxrefl.reflectance.fill", "nearest_candidates", "III: nearest candidates (k-d tree)"),
-    ("jaxrefl.methods.auto", "interreflection_ratios", "auto: interreflection ratios"),
+    ("jaxrefl.methods.interreflection", "interreflection_ratios", "interreflection ratios (auto; Method I: its pd sd)"),
     ("jaxrefl.methods.auto", "plan", "auto: plan"),
 )
 

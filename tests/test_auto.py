@@ -11,7 +11,7 @@ import pytest
 from data_synth.scans import Sensor, make_scan
 from jaxrefl.geometry import formfactors
 from jaxrefl.geometry.raycast import RayCaster
-from jaxrefl.methods import auto
+from jaxrefl.methods import auto, interreflection
 from jaxrefl.methods.local import LocalOptions, estimate_local, prepare_rows
 from jaxrefl.methods.radiosity import RadiosityOptions, direct_irradiance
 from jaxrefl.result import Estimate
@@ -87,12 +87,12 @@ def test_interreflection_ratios_against_the_first_radiosity_bounce(fresh_cache):
     np.testing.assert_allclose(s2, 2 * s1, rtol=1e-9)
     assert s1.max() > 0 and sharp.max() > 2 * s1.max()
     # the lobes are evaluated in chunks of (entry, light) pairs: small chunks, the same sums
-    monkeypatch_pairs = auto._PAIRS
+    monkeypatch_pairs = interreflection._PAIRS
     try:
-        auto._PAIRS = 997
+        interreflection._PAIRS = 997
         g_small, s_small = auto.interreflection_ratios(scan, est(0.1, 0.1), ff, rows)
     finally:
-        auto._PAIRS = monkeypatch_pairs
+        interreflection._PAIRS = monkeypatch_pairs
     np.testing.assert_allclose(s_small, s1, rtol=1e-12)
     np.testing.assert_allclose(g_small, g, rtol=1e-12)
 

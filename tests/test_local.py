@@ -479,3 +479,34 @@ def test_ward_diffuse_object_without_any_lobe_keeps_its_albedo():
     est = estimate_local(scan, LocalOptions(model="ward"))
     assert np.all(est.ps == 0) and np.all(np.isfinite(est.pd))
     np.testing.assert_allclose(est.pd[est.pd_measured], scan.true_pd[est.pd_measured], rtol=0.02)
+
+
+def test_std_pd_holds_the_light_the_object_reflects_onto_itself():
+    """A diffuse 90-degree fold under full global illumination (the path tracer): Method I's pd
+    keeps the light each half sends the other, 14 noise sds too bright at the median point. Its
+    std_pd now holds that light's estimated share (first bounce through 16-ray form factors), so
+    few points lie beyond 3 sd; the values do not change, and a warning says why."""
+    scan, _ = make_scan("E", resolution=16, setup="diffuse", lights=[26, 40, 50], global_illumination=True,
+                        samples=64, sensor=Sensor(noise=0.01), seed=0)
+    est = estimate_local(scan)
+    noise_only = estimate_local(scan, LocalOptions(interreflection_rays=0))
+    for name in ("pd", "ps", "roughness", "status", "std_ps", "std_roughness"):
+        np.testing.assert_array_equal(getattr(est, name), getattr(noise_only, name), err_msg=name)
+    obs = est.pd_measured
+
+    def beyond(e):
+        return np.mean((np.abs(e.pd - scan.true_pd) > 3 * e.std_pd)[obs])
+
+    assert beyond(noise_only) > 0.5 and beyond(est) < 0.1
+    assert np.all(est.std_pd >= noise_only.std_pd)
+    info = est.meta["interreflection"]
+    assert info["rays"] == 16 and 0.05 < info["share_median"] < 0.5 and info["points_beyond_noise"] > 0
+    assert any("receive light from the object itself" in w for w in est.meta["warnings"])
+    assert "interreflection" not in noise_only.meta
+
+
+def test_a_convex_object_receives_no_light_from_itself(convex_noisy):
+    """The vase sees none of itself: the share is 0 and std_pd is the noise's alone."""
+    scan, est = convex_noisy
+    assert est.meta["interreflection"]["share_p90"] == 0.0
+    assert not any("receive light from the object itself" in w for w in est.meta["warnings"])

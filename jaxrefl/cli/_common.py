@@ -70,6 +70,9 @@ def add_estimate_options(p):
                         "prior (status measured or pooled); --no-prior: the gated rules (--pool, --window)")
     p.add_argument("--materials", type=int, default=6, metavar="K",
                    help="most materials the prior tries (K = 1..this, chosen by BIC)")
+    p.add_argument("--interreflection-rays", type=int, default=16, metavar="N",
+                   help="Method I: rays per point estimating the light the object reflects onto itself, which "
+                        "Method I leaves in pd; its std_pd includes it (0: noise alone)")
     p.add_argument("--pool", action=argparse.BooleanOptionalAction, default=True,
                    help="with --no-prior: points without their own lobe share one fitted with same-colour "
                         "neighbours (default; --no-pool: window interpolation only)")
@@ -130,7 +133,7 @@ def method_from_options(options) -> Local | Radiosity | Photon | Auto:
     o = options
     local = Local(model=o.model, paper=o.paper, steps=o.steps, window=o.window, min_snr=o.min_snr,
                   solver=o.solver, pool=o.pool, prior=getattr(o, "prior", True),
-                  materials=getattr(o, "materials", 6))
+                  materials=getattr(o, "materials", 6), interreflection_rays=getattr(o, "interreflection_rays", 16))
     if local.materials < 1:
         raise ValueError(f"materials: must be >= 1, got {local.materials}")
     if o.rays < 1 or o.outer < 1 or not o.light_bin >= 0:

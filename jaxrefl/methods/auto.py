@@ -110,6 +110,7 @@ from ..geometry.raycast import RayCaster
 from ..reflectance.fill import vertex_adjacency
 from ..result import Estimate
 from ..scan import checks
+from .interreflection import interreflection_ratios
 from .local import INTERPOLATED, MEASURED, POOLED, UNRESOLVED, LocalOptions, estimate_local, prepare_rows
 from .radiosity import RadiosityOptions, estimate_radiosity
 
@@ -279,60 +280,6 @@ def _relative_std(std, value, own):
     return np.where(ok, np.asarray(std) / np.where(ok, value, 1.0), np.inf)
 
 
-def interreflection_ratios(scan, est: Estimate, ff: FormFactors, rows: dict) -> tuple[np.ndarray, np.ndarray]:
-    """First-bounce interreflected over direct irradiance per point, `(g, s)` each `(N,)`,
-    under the scan's own lights and with the reflectance `est` (Method I's fit).
-
-    For every form-factor entry `(u, v)` and light `m`, patch `v` lit by `E_vm`
-    (`rows['e']`, its direct irradiance in observation `m`, 0 where shadowed) sends
-    `u` the irradiance `F_uv pd_v E_vm` diffusely and `pi F_uv f_s(v; l_vm -> u) E_vm`
-    through its specular lobe (`est`'s model, evaluated towards `u`). Summed over `v`
-    and over the samples pd is fitted from (the diffuse-only ones where a point has any,
-    else all its samples), each over the direct irradiance of the same samples."""
-    from ..reflectance import brdf
-    from ..reflectance.classify import T_DIFF
-
-    use, e = rows["use"], rows["e"]
-    sample = np.where((use & (rows["classes"] == T_DIFF)).any(1)[:, None], use & (rows["classes"] == T_DIFF), use)
-    n = scan.n_points
-    pd = np.clip(est.pd.mean(axis=1), 0.0, 1.0)
-    e_used = np.where(sample, e, 0.0)
-    direct = e_used.sum(axis=1)
-    # diffuse: sum over the samples m of u of sum_v F_uv pd_v E_vm
-    diffuse = np.einsum("nm,nm->n", sample, ff.matrix @ (pd[:, None] * e))
-    # specular: only entries whose sender has a lobe, and only (entry, light) pairs where u uses
-    # the sample and v is lit, evaluated in fixed-size chunks (one compiled shape)
-    u, v, f = ff.rows.astype(np.int64), ff.cols.astype(np.int64), ff.values
-    lobed = np.flatnonzero((est.ps[v] > 0) & (est.roughness[v] > 0))
-    entry, light = np.nonzero(sample[u[lobed]] & (e[v[lobed]] > 0))
-    entry = lobed[entry]
-    specular = np.zeros(n)
-    lobe = brdf.MODELS[est.model][1]
-    lights = scan.light_positions()
-    for lo in range(0, len(entry), _PAIRS):
-        k, m = entry[lo:lo + _PAIRS], light[lo:lo + _PAIRS]
-        pad = _PAIRS - len(k)
-        k, m = np.pad(k, (0, pad), mode="edge"), np.pad(m, (0, pad), mode="edge")
-        uk, vk = u[k], v[k]
-        to_u = scan.vertices[uk] - scan.vertices[vk]
-        to_u /= np.maximum(np.linalg.norm(to_u, axis=1, keepdims=True), 1e-300)
-        to_l = lights[vk, m] - scan.vertices[vk]
-        to_l /= np.maximum(np.linalg.norm(to_l, axis=1, keepdims=True), 1e-300)
-        n_v = scan.normals[vk]
-        cos_i, cos_o = np.einsum("kj,kj->k", n_v, to_l), np.einsum("kj,kj->k", n_v, to_u)
-        theta_r = brdf.half_angle(n_v, to_l, to_u)
-        f_s = np.asarray(lobe(est.ps[vk], np.log(est.roughness[vk]), cos_i, cos_o, theta_r))
-        contrib = np.pi * f[k] * f_s * e[vk, m]
-        contrib[len(contrib) - pad:] = 0.0
-        specular += np.bincount(uk, contrib, minlength=n)
-    ok = direct > 0
-    ratio = lambda x: np.where(ok, x / np.where(ok, direct, 1.0), 0.0)  # noqa: E731
-    return ratio(diffuse), ratio(specular)
-
-
-_PAIRS = 1 << 16  # (form-factor entry, light) pairs per lobe evaluation in `interreflection_ratios`
-
-
 def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None = None) -> Measures:
     """Form factors (cached, the same casts as Method II) and a Method I fit, and from
     them the per-point measurements of the module docstring."""
@@ -345,7 +292,8 @@ def measure(scan, options: AutoOptions = AutoOptions(), caster: RayCaster | None
     rows = prepare_rows(scan, options.local.thresholds, caster)
     # The error model's coefficients were fitted against Method I's gated rules, so its
     # statistics (and the Method I estimate auto keeps) come from those, not the prior.
-    local = estimate_local(scan, dataclasses.replace(options.local, prior=False), caster, rows=rows)
+    local = estimate_local(scan, dataclasses.replace(options.local, prior=False, interreflection_rays=0), caster,
+                           rows=rows)
     t_local = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -651,7 +599,7 @@ def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = Aut
     if not auto_meta.get("global_method"):
         return est
     caster = caster or RayCaster(fit_scan.vertices, fit_scan.faces)  # the two scans share the mesh
-    local = estimate_local(fit_scan, options.local, caster)
+    local = estimate_local(fit_scan, dataclasses.replace(options.local, interreflection_rays=0), caster)
     names, results = [auto_meta.get("choice")], [est]
     if gi_model(est) == "photon" and "radiosity" in options.methods:
         radiosity = _run("radiosity", fit_scan, options, caster)
@@ -792,7 +740,8 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
     if options.local.prior and not options.local.paper and (p.ps_method is None or np.any(p.ps_method == 0)
                                                             or "photon" in others):
         # Where Method I's lobes are kept, keep them as Method I gives them: with the shared prior.
-        local = estimate_local(scan, options.local, caster, rows=measures.rows)
+        local = estimate_local(scan, dataclasses.replace(options.local, interreflection_rays=0), caster,
+                               rows=measures.rows)
         seconds["local_prior"] = time.perf_counter() - t0
         t0 = time.perf_counter()
     if "photon" in others:

@@ -1133,7 +1133,8 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
     t0 = time.perf_counter()
     # The start's unresolved lobes are the nearest measured ones (`LocalOptions.material_fill`):
     # a direct-light joint fit of a material without a measured lobe may be interreflected light.
-    init = estimate_local(scan, replace(options.local, material_fill=False), caster, rows=rows_np)
+    init = estimate_local(scan, replace(options.local, material_fill=False, interreflection_rays=0), caster,
+                          rows=rows_np)
     timings["local_start"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -85,6 +85,7 @@ from ..reflectance.pool import pooled_specular
 from ..result import Estimate
 from ..scan import checks
 from ..status import STATUS_NAMES, Status
+from .interreflection import interreflected_share
 from .lm import (SAMPLE_BLOCK, block_sums, bounded_arrow_solve, gauss_newton_1d, msum, projected_step_terms, rowsum,
                  spd_inverse_diagonal)
 
@@ -118,8 +119,13 @@ class LocalOptions:
     #: where that shows a lobe (False: the nearest measured lobes, as Methods II and III use:
     #: under interreflection a material's direct-light joint fit may be interreflected light).
     material_fill: bool = True
+    #: Rays per point that estimate the light the object reflects onto itself, which Method I
+    #: leaves in pd (`interreflected_share`); its std_pd includes it. 0: noise alone.
+    interreflection_rays: int = 16
 
     def __post_init__(self):
+        if self.interreflection_rays < 0:
+            raise ValueError(f"interreflection_rays must be >= 0, got {self.interreflection_rays}")
         if self.model not in brdf.MODELS:
             raise ValueError(f"model must be one of {sorted(brdf.MODELS)}, got {self.model!r}")
         if self.solver not in ("lm", "optimistix"):
@@ -1251,6 +1257,29 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
             "observation_checks": scan.meta["observation_checks"], **extra}
     est = Estimate(pd, ps, rough, status, std_pd, std_ps, std_rough, identifiable, observed_any,
                    options.model, meta, material)
+    if options.interreflection_rays and observed_any.any():
+        # pd's uncertainty also holds the light the object reflects onto itself, which this
+        # method's model leaves in pd (Methods II, III and auto model it, and call this one with
+        # `interreflection_rays` 0: on radiance with that light removed, or for a start).
+        t0 = time.perf_counter()
+        share = interreflected_share(scan, est, rows, options.interreflection_rays, caster)
+        bias = pd * (share / (1.0 + share))[:, None]  # pd = truth (1 + share)
+        beyond = observed_any & np.any(bias > 3.0 * std_pd, 1)
+        std_pd[:] = np.where(observed_any[:, None], np.sqrt(std_pd**2 + bias**2), std_pd)  # in place: est's
+        meta["interreflection"] = {"rays": options.interreflection_rays,
+                                   "share_median": float(np.median(share[observed_any])),
+                                   "share_p90": float(np.quantile(share[observed_any], 0.9)),
+                                   "points_beyond_noise": int(beyond.sum())}
+        timings["interreflection"] = time.perf_counter() - t0
+        if beyond.mean() >= 0.05 * observed_any.mean():
+            meta.setdefault("method_warnings", []).append(
+                f"{beyond.sum() / observed_any.sum():.0%} of the observed points receive light from the object "
+                f"itself beyond three standard deviations of their pd's noise (first bounce, estimated: median "
+                f"{meta['interreflection']['share_median']:.1%} of the direct light, 90th percentile "
+                f"{meta['interreflection']['share_p90']:.1%}); Method I leaves it in pd and its std_pd includes "
+                "it. Methods II and III (or --method auto) model it.")
+            logger.warning(meta["method_warnings"][-1])
     if top:
         checks.estimate_warnings(est, logger)
     return est
+

@@ -461,7 +461,9 @@ def estimate_radiosity(scan, options: RadiosityOptions = RadiosityOptions(),
     # Unresolved lobes from the nearest measured ones (`LocalOptions.material_fill`): what is left
     # after the diffuse interreflection still holds the specular one, which a material's joint
     # fit without a measured lobe may take for its own.
-    local_options = dataclasses.replace(options.local, paper=options.paper, material_fill=False)
+    # Method I on what is left after the interreflected light: none left to report (`interreflection_rays`)
+    local_options = dataclasses.replace(options.local, paper=options.paper, material_fill=False,
+                                        interreflection_rays=0)
     timings = {}
     t0 = time.perf_counter()
     caster = caster or RayCaster(scan.vertices, scan.faces)
