@@ -2,7 +2,7 @@
 
 `interreflection_ratios` sums it through form factors (Method II's, or cheap ones of a few rays
 per point) with a fitted reflectance; `--method auto` decides with it where interreflection
-matters, and Method I reports what it leaves in pd with it (`interreflected_share`).
+matters, and Method I reports what it leaves in pd with it (`pd_sd_with_interreflection`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from ..geometry.formfactors import FormFactors, form_factors
 from ..geometry.raycast import RayCaster
 from ..result import Estimate
 
-__all__ = ["interreflection_ratios", "interreflected_share"]
+__all__ = ["interreflection_ratios", "interreflected_share", "pd_sd_with_interreflection"]
 
 _PAIRS = 1 << 16  # (form-factor entry, light) pairs per lobe evaluation in `interreflection_ratios`
 
@@ -80,3 +80,28 @@ def interreflected_share(scan, est: Estimate, rows: dict, rays: int = 16, caster
     ff = form_factors(scan.vertices, scan.faces, scan.normals, rays=rays, caster=caster)
     diffuse, specular = interreflection_ratios(scan, est, ff, rows)
     return np.where(np.isfinite(diffuse + specular), np.maximum(diffuse + specular, 0.0), 0.0)
+
+
+def pd_sd_with_interreflection(scan, est: Estimate, rows: dict, rays: int = 16,
+                               caster: RayCaster | None = None) -> tuple[np.ndarray, dict, str | None]:
+    """Method I's pd with the light the object reflects onto itself in its uncertainty: that
+    light (`interreflected_share`) makes pd too bright by `pd * share / (1 + share)` (pd =
+    truth (1 + share)), added in quadrature to `est.std_pd` at the observed points. Returns the
+    new `std_pd` `(N, 3)`, a summary (`rays`, `share_median`, `share_p90`, `points_beyond_noise`:
+    where that bias exceeds three of the noise's sds) and a warning where those are at least
+    5 % of the observed points (else None)."""
+    observed = np.asarray(est.pd_measured, bool)
+    share = interreflected_share(scan, est, rows, rays, caster)
+    bias = est.pd * (share / (1.0 + share))[:, None]
+    beyond = observed & np.any(bias > 3.0 * est.std_pd, 1)
+    std_pd = np.where(observed[:, None], np.sqrt(est.std_pd**2 + bias**2), est.std_pd)
+    info = {"rays": int(rays), "share_median": float(np.median(share[observed])),
+            "share_p90": float(np.quantile(share[observed], 0.9)), "points_beyond_noise": int(beyond.sum())}
+    warning = None
+    if beyond.sum() >= 0.05 * observed.sum():
+        warning = (f"{beyond.sum() / observed.sum():.0%} of the observed points receive light from the object itself "
+                   f"beyond three standard deviations of their pd's noise (first bounce, estimated: median "
+                   f"{info['share_median']:.1%} of the direct light, 90th percentile {info['share_p90']:.1%}); "
+                   "Method I leaves it in pd and its std_pd includes it. Methods II and III (or --method auto) "
+                   "model it.")
+    return std_pd, info, warning

@@ -136,6 +136,7 @@ from ..reflectance.fill import nearest_candidates, precise_huber, vertex_adjacen
 from ..result import Estimate
 from ..scan import checks
 from .final_gather import gather_parts, gather_rays, photons_per_configuration, rays_within_budget
+from .interreflection import pd_sd_with_interreflection
 from .lm import gauss_newton_1d
 from .local import (
     _SPREADS,
@@ -1314,6 +1315,12 @@ def estimate_photon(scan, options: PhotonOptions = PhotonOptions(), caster: RayC
         pd, ps, alpha, status = init.pd.copy(), init.ps.copy(), init.roughness.copy(), init.status.copy()
         std_pd, std_ps, std_alpha = init.std_pd.copy(), init.std_ps.copy(), init.std_roughness.copy()
         identifiable, labels, prior_meta = init.specular_identifiable.copy(), init.material, {}
+        if options.local.interreflection_rays:  # as Method I reports it: the light it leaves in pd
+            std_pd, prior_meta["interreflection"], warning = pd_sd_with_interreflection(
+                scan, init, rows_np, options.local.interreflection_rays, caster)
+            if warning:
+                method_warnings.append(warning)
+                logger.warning(warning)
     else:
         std_pd = _pd_std(fin, dof)
         std_ps = np.where(known, sd_ps, np.inf)

@@ -85,7 +85,7 @@ from ..reflectance.pool import pooled_specular
 from ..result import Estimate
 from ..scan import checks
 from ..status import STATUS_NAMES, Status
-from .interreflection import interreflected_share
+from .interreflection import pd_sd_with_interreflection
 from .lm import (SAMPLE_BLOCK, block_sums, bounded_arrow_solve, gauss_newton_1d, msum, projected_step_terms, rowsum,
                  spd_inverse_diagonal)
 
@@ -1262,23 +1262,12 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
         # method's model leaves in pd (Methods II, III and auto model it, and call this one with
         # `interreflection_rays` 0: on radiance with that light removed, or for a start).
         t0 = time.perf_counter()
-        share = interreflected_share(scan, est, rows, options.interreflection_rays, caster)
-        bias = pd * (share / (1.0 + share))[:, None]  # pd = truth (1 + share)
-        beyond = observed_any & np.any(bias > 3.0 * std_pd, 1)
-        std_pd[:] = np.where(observed_any[:, None], np.sqrt(std_pd**2 + bias**2), std_pd)  # in place: est's
-        meta["interreflection"] = {"rays": options.interreflection_rays,
-                                   "share_median": float(np.median(share[observed_any])),
-                                   "share_p90": float(np.quantile(share[observed_any], 0.9)),
-                                   "points_beyond_noise": int(beyond.sum())}
+        std_pd[:], meta["interreflection"], warning = pd_sd_with_interreflection(
+            scan, est, rows, options.interreflection_rays, caster)  # in place: est's
         timings["interreflection"] = time.perf_counter() - t0
-        if beyond.mean() >= 0.05 * observed_any.mean():
-            meta.setdefault("method_warnings", []).append(
-                f"{beyond.sum() / observed_any.sum():.0%} of the observed points receive light from the object "
-                f"itself beyond three standard deviations of their pd's noise (first bounce, estimated: median "
-                f"{meta['interreflection']['share_median']:.1%} of the direct light, 90th percentile "
-                f"{meta['interreflection']['share_p90']:.1%}); Method I leaves it in pd and its std_pd includes "
-                "it. Methods II and III (or --method auto) model it.")
-            logger.warning(meta["method_warnings"][-1])
+        if warning:
+            meta.setdefault("method_warnings", []).append(warning)
+            logger.warning(warning)
     if top:
         checks.estimate_warnings(est, logger)
     return est
