@@ -366,6 +366,9 @@ def test_fold_needs_inverse_radiosity_and_the_form_factors_are_cast_once(fold_sc
     assert err(est)[near].mean() < 0.5 * err(local)[near].mean()
     for k in ("pd", "ps", "roughness", "std_pd", "std_ps", "std_roughness"):
         assert not np.any(np.isnan(getattr(est, k)))
+    # where pd stays Method I's, its std holds the interreflected light measured with Method II's form factors
+    ir = est.meta["interreflection"]
+    assert ir["rays"] == 64 and ir["share_p90"] > 0
     region_points = sum(r["points"] for r in a["regions"])
     assert region_points + a["extended_points"] == a["points_by_method"].get("radiosity", 0) > 0
     # Method II estimated those points and no others

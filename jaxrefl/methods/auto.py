@@ -110,7 +110,7 @@ from ..geometry.raycast import RayCaster
 from ..reflectance.fill import vertex_adjacency
 from ..result import Estimate
 from ..scan import checks
-from .interreflection import interreflection_ratios
+from .interreflection import interreflection_ratios, pd_sd_with_interreflection
 from .local import INTERPOLATED, MEASURED, POOLED, UNRESOLVED, LocalOptions, estimate_local, prepare_rows
 from .radiosity import RadiosityOptions, estimate_radiosity
 
@@ -599,7 +599,7 @@ def holdout_check(est: Estimate, fit_scan, test_scan, options: AutoOptions = Aut
     if not auto_meta.get("global_method"):
         return est
     caster = caster or RayCaster(fit_scan.vertices, fit_scan.faces)  # the two scans share the mesh
-    local = estimate_local(fit_scan, dataclasses.replace(options.local, interreflection_rays=0), caster)
+    local = estimate_local(fit_scan, options.local, caster)  # kept whole where it wins: its std_pd as Method I's
     names, results = [auto_meta.get("choice")], [est]
     if gi_model(est) == "photon" and "radiosity" in options.methods:
         radiosity = _run("radiosity", fit_scan, options, caster)
@@ -746,7 +746,11 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
         t0 = time.perf_counter()
     if "photon" in others:
         p = _photon_sources(p, local, others["photon"])
-    est = dataclasses.replace(local, meta=dict(local.meta))
+    # Where pd stays Method I's, its std holds the interreflected light Method I leaves in it, as a
+    # Method I run reports it, from the ratios measured above (Method II's form factors).
+    std_pd, local_ir, _ = pd_sd_with_interreflection(scan, local, measures.rows, options.radiosity.rays, caster,
+                                                     share=measures.gain_diffuse + measures.gain_specular)
+    est = dataclasses.replace(local, std_pd=std_pd, meta=dict(local.meta))
     for k, other in others.items():
         est = _merge(est, other, p.method == METHODS.index(k), p.ps_method == METHODS.index(k))
     seconds["merge"] = time.perf_counter() - t0
@@ -809,6 +813,7 @@ def estimate_auto(scan, options: AutoOptions = AutoOptions(), caster: RayCaster 
                     "photon": dict(options.photon)},
         "points_with_observations": measures.local.meta.get("points_with_observations"),
         "observation_checks": scan.meta["observation_checks"],
+        "interreflection": local_ir,  # Method I's, over every observed point; its pd's std where kept
     }))
     if top:
         checks.estimate_warnings(est, logger)

@@ -83,15 +83,16 @@ def interreflected_share(scan, est: Estimate, rows: dict, rays: int = 16, caster
 
 
 def pd_sd_with_interreflection(scan, est: Estimate, rows: dict, rays: int = 16,
-                               caster: RayCaster | None = None) -> tuple[np.ndarray, dict, str | None]:
+                               caster: RayCaster | None = None, share=None) -> tuple[np.ndarray, dict, str | None]:
     """Method I's pd with the light the object reflects onto itself in its uncertainty: that
-    light (`interreflected_share`) makes pd too bright by `pd * share / (1 + share)` (pd =
-    truth (1 + share)), added in quadrature to `est.std_pd` at the observed points. Returns the
-    new `std_pd` `(N, 3)`, a summary (`rays`, `share_median`, `share_p90`, `points_beyond_noise`:
-    where that bias exceeds three of the noise's sds) and a warning where those are at least
-    5 % of the observed points (else None)."""
+    light (`interreflected_share`, or `share` `(N,)` where the caller has it) makes pd too bright
+    by `pd * share / (1 + share)` (pd = truth (1 + share)), added in quadrature to `est.std_pd`
+    at the observed points. Returns the new `std_pd` `(N, 3)`, a summary (`rays`,
+    `share_median`, `share_p90`, `points_beyond_noise`: where that bias exceeds three of the
+    noise's sds) and a warning where those are at least 5 % of the observed points (else None)."""
     observed = np.asarray(est.pd_measured, bool)
-    share = interreflected_share(scan, est, rows, rays, caster)
+    share = interreflected_share(scan, est, rows, rays, caster) if share is None else \
+        np.where(np.isfinite(share), np.maximum(share, 0.0), 0.0)
     bias = est.pd * (share / (1.0 + share))[:, None]
     beyond = observed & np.any(bias > 3.0 * est.std_pd, 1)
     std_pd = np.where(observed[:, None], np.sqrt(est.std_pd**2 + bias**2), est.std_pd)
