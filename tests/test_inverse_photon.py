@@ -440,7 +440,7 @@ def test_a_material_takes_the_neighbourhood_prior_only_where_its_rows_evidence_p
 
     def prior(v):
         return LobePrior(*(np.full(n, v + i) for i in range(4)), np.full(n, v > 0), np.full(k, 10.0 * v),
-                         np.full(k, 20.0 * v))
+                         np.full(k, 20.0 * v), np.full(n, v + 1.5), np.full(n, v + 3.0))  # ps's cover widened
 
     both = ip._select_prior(prior(0.0), prior(1.0), np.array([True, False, False]), labels)
     np.testing.assert_array_equal(both.mean_ps, np.where(labels == 0, 1.0, 0.0))
@@ -448,3 +448,5 @@ def test_a_material_takes_the_neighbourhood_prior_only_where_its_rows_evidence_p
     np.testing.assert_array_equal(both.available, labels == 0)
     np.testing.assert_array_equal(both.spread_ps, [10.0, 0.0, 0.0])
     np.testing.assert_array_equal(both.spread_rho, [20.0, 0.0, 0.0])
+    np.testing.assert_array_equal(both.cover_var_ps, np.where(labels == 0, 2.5, 1.5))
+    np.testing.assert_array_equal(both.widened, np.ones(n, bool))

@@ -938,7 +938,7 @@ def _select_prior(first, second, chosen, labels):
                                np.where(chosen, second.spread_ps, first.spread_ps),
                                np.where(chosen, second.spread_rho, first.spread_rho),
                                *(np.where(pick, getattr(second, f), getattr(first, f)) for f in
-                                 ("cover_var_ps", "cover_var_rho", "widened")))
+                                 ("cover_var_ps", "cover_var_rho")))
 
 
 def _lobe_posterior(scan, rows, theta, d, q, std_pd, observed_any, dark, peak, options):

@@ -54,8 +54,8 @@ from scipy.stats import chi2 as chi2_dist
 from jaxrefl.reflectance import colour_mixture
 from jaxrefl.reflectance.fill import neighbour_tree
 
-__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "lobes_meta", "LocalLobes", "local_lobes", "cover_measured",
-           "covered_variance",
+__all__ = ["Materials", "fit_materials", "MaterialLobes", "material_lobes", "lobes_meta", "LocalLobes", "local_lobes",
+           "cover_measured", "covered_variance",
            "LobePrior", "lobe_prior", "DiffusePrior", "diffuse_prior", "combine_with_prior", "local_prior",
            "spread_by_evidence", "status_from_posterior", "prior_conflict", "material_totals", "weighted_rows"]
 
@@ -270,12 +270,12 @@ class MaterialLobes:
         return finite & (self.ps <= ps_bound(np.where(finite, roughness, 1.0)))
 
 
-def _profile(c, a, b):
-    """chi^2 at the best ps >= 0 and that ps, elementwise; chi^2 inf where it overflows (the
-    sums of a sharp lobe can pass float64's range)."""
+def _profile(c, a, b, bound=np.inf):
+    """chi^2 at the best `0 <= ps <= bound` and that ps, elementwise; chi^2 inf where it
+    overflows (the sums of a sharp lobe can pass float64's range)."""
     a_safe = np.where(a > 0, a, 1.0)
     with np.errstate(over="ignore", invalid="ignore"):
-        ps = np.where((a > 0) & (b > 0), b / a_safe, 0.0)
+        ps = np.minimum(np.where((a > 0) & (b > 0), b / a_safe, 0.0), bound)
         chi2 = c - 2.0 * ps * b + ps * ps * a
     return np.where(np.isfinite(chi2), chi2, np.inf), ps
 
@@ -386,10 +386,7 @@ def _grid_fit(sums, grid, bound):
     parabola through the grid's best value and its neighbours; variances of ps (`1 / a`) and
     of rho (`2 / curvature` of chi^2). Returns `(ps, rho, var_ps, var_rho)`, each `(n,)`."""
     c, a, b = sums[:, 0], sums[:, 1], sums[:, 2]
-    with np.errstate(over="ignore", invalid="ignore"):
-        ps_g = np.minimum(np.where((a > 0) & (b > 0), b / np.where(a > 0, a, 1.0), 0.0), bound[:, None])
-        chi2 = c - 2.0 * ps_g * b + ps_g * ps_g * a
-    chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
+    chi2, ps_g = _profile(c, a, b, bound[:, None])
     cols = np.arange(c.shape[1])
     g = np.clip(np.argmin(chi2, axis=0), 1, len(grid) - 2)
     h = float(grid[1] - grid[0])
@@ -585,7 +582,7 @@ class LobePrior:
     has points with their own lobe); `spread_ps`, `spread_rho` `(K,)` the within-material
     spreads found (variances). `cover_var_ps`, `cover_var_rho` `(N,)`: the variances raised
     to cover the measured lobes around each point (`cover_measured`; `widened` where either
-    is): a point's estimate keeps the prior's mean and width (the best guess where most of
+    is raised): a point's estimate keeps the prior's mean and width (the best guess where most of
     its neighbours agree), and its reported uncertainty takes these (`covered_variance`)."""
 
     mean_ps: np.ndarray
@@ -595,9 +592,13 @@ class LobePrior:
     available: np.ndarray
     spread_ps: np.ndarray
     spread_rho: np.ndarray
-    cover_var_ps: np.ndarray | None = None  # (N,) the variances `cover_measured` widened
-    cover_var_rho: np.ndarray | None = None
-    widened: np.ndarray | None = None  # (N,) bool: where either is wider than var_ps / var_rho
+    cover_var_ps: np.ndarray
+    cover_var_rho: np.ndarray
+
+    @property
+    def widened(self) -> np.ndarray:
+        """`(N,)` bool: where `cover_measured` widened either variance."""
+        return (self.cover_var_ps > self.var_ps) | (self.cover_var_rho > self.var_rho)
 
 
 def _robust_spread(deviation, own_var):
@@ -973,13 +974,11 @@ def lobe_prior(ps, var_ps, rho, var_rho, own, labels, lobes: MaterialLobes, posi
         out[key] = np.where(available, np.maximum(out[key], _VAR_FLOOR), np.inf)
     for key in ("mean_ps", "mean_rho"):
         out[key] = np.where(available, out[key], 0.0)
-    cover, widened = {}, np.zeros(n, bool)
-    for name, value, var in (("ps", ps, var_ps), ("rho", rho, var_rho)):
-        cover[name], more = cover_measured(value, var, own & fitted, out["mean_" + name], out["var_" + name],
-                                           available, labels, positions, neighbours)
-        widened |= more
+    cover = {name: cover_measured(value, var, own & fitted, out["mean_" + name], out["var_" + name], available,
+                                  labels, positions, neighbours)[0]
+             for name, value, var in (("ps", ps, var_ps), ("rho", rho, var_rho))}
     return LobePrior(out["mean_ps"], out["var_ps"], out["mean_rho"], out["var_rho"], available,
-                     spreads[0], spreads[1], cover["ps"], cover["rho"], widened)
+                     spreads[0], spreads[1], cover["ps"], cover["rho"])
 
 
 def covered_variance(var_post, var_prior, var_cover):
