@@ -79,7 +79,12 @@ def interreflected_share(scan, est: Estimate, rows: dict, rays: int = 16, caster
     caster = caster or RayCaster(scan.vertices, scan.faces)
     ff = form_factors(scan.vertices, scan.faces, scan.normals, rays=rays, caster=caster)
     diffuse, specular = interreflection_ratios(scan, est, ff, rows)
-    return np.where(np.isfinite(diffuse + specular), np.maximum(diffuse + specular, 0.0), 0.0)
+    return _as_share(diffuse + specular)
+
+
+def _as_share(x):
+    """A share of light: non-negative and finite (0 elsewhere)."""
+    return np.where(np.isfinite(x), np.maximum(x, 0.0), 0.0)
 
 
 def pd_sd_with_interreflection(scan, est: Estimate, rows: dict, rays: int = 16,
@@ -91,8 +96,7 @@ def pd_sd_with_interreflection(scan, est: Estimate, rows: dict, rays: int = 16,
     `share_median`, `share_p90`, `points_beyond_noise`: where that bias exceeds three of the
     noise's sds) and a warning where those are at least 5 % of the observed points (else None)."""
     observed = np.asarray(est.pd_measured, bool)
-    share = interreflected_share(scan, est, rows, rays, caster) if share is None else \
-        np.where(np.isfinite(share), np.maximum(share, 0.0), 0.0)
+    share = interreflected_share(scan, est, rows, rays, caster) if share is None else _as_share(share)
     bias = est.pd * (share / (1.0 + share))[:, None]
     beyond = observed & np.any(bias > 3.0 * est.std_pd, 1)
     std_pd = np.where(observed[:, None], np.sqrt(est.std_pd**2 + bias**2), est.std_pd)

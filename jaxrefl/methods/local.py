@@ -1271,4 +1271,3 @@ def estimate_local(scan, options: LocalOptions = LocalOptions(), caster: RayCast
     if top:
         checks.estimate_warnings(est, logger)
     return est
-
